@@ -1,0 +1,318 @@
+"""Image and metadata I/O: the one place where files are read and written.
+
+Every stage reads masks, microscope images, prints and batch metadata through these
+functions, so that bad input gets the same clear error everywhere (the file and what
+is wrong with it).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+from PIL import Image
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
+
+
+class InputError(ValueError):
+    """Bad input: the message names the file and what is wrong with it."""
+
+    def __init__(self, path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")
+
+
+# --------------------------------------------------------------------------- masks
+
+
+def read_mask(path) -> np.ndarray:
+    """An 8-bit grayscale mask as uint8 (255 = 100 % dose)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "mask file does not exist")
+    try:
+        with Image.open(path) as im:
+            mode = im.mode
+            im.load()
+            arr = np.asarray(im)
+    except Exception as exc:  # PIL raises many kinds
+        raise InputError(path, f"cannot read mask image ({exc})") from exc
+    if mode != "L":
+        raise InputError(
+            path,
+            f"mask must be 8-bit grayscale (PNG mode 'L'), found mode {mode!r}"
+            + (" with colour channels" if arr.ndim == 3 else ""),
+        )
+    return arr.astype(np.uint8, copy=False)
+
+
+def write_png(path, arr: np.ndarray) -> None:
+    """Write an 8-bit grayscale PNG (bool arrays become 0/255)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    a = np.asarray(arr)
+    if a.dtype == bool:
+        a = a.astype(np.uint8) * 255
+    if a.dtype != np.uint8:
+        raise TypeError(f"write_png expects uint8 or bool, got {a.dtype} for {path}")
+    Image.fromarray(a, mode="L").save(path, optimize=False, compress_level=3)
+
+
+def write_rgb(path, arr: np.ndarray) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(np.asarray(arr, dtype=np.uint8), mode="RGB").save(path, compress_level=3)
+
+
+def read_print(path) -> np.ndarray:
+    """A binary print (0/255 PNG) as a bool array."""
+    arr = read_mask(path)
+    vals = np.unique(arr)
+    if not set(vals.tolist()) <= {0, 255}:
+        raise InputError(path, f"a print must be binary 0/255, found values {vals[:6].tolist()}...")
+    return arr > 127
+
+
+# --------------------------------------------------------------------- microscope
+
+
+def read_image(path) -> np.ndarray:
+    """A fluorescence image (.tif/.tiff/.png, 8 or 16 bit, any size) as float32.
+
+    Also returns nothing about the dtype; use `read_image_raw` for the raw array.
+    """
+    return read_image_raw(path).astype(np.float32)
+
+
+def read_image_raw(path) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "image file does not exist")
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise InputError(path, f"unsupported image type {suffix!r} (use .tif, .tiff or .png)")
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            arr = tifffile.imread(path)
+        else:
+            with Image.open(path) as im:
+                im.load()
+                arr = np.asarray(im)
+    except Exception as exc:
+        raise InputError(path, f"cannot read image, the file is unreadable or truncated ({exc})") from exc
+    arr = np.squeeze(arr)
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+        raise InputError(path, f"image has colour channels {arr.shape}; expected one grayscale channel")
+    if arr.ndim != 2:
+        raise InputError(path, f"image must be 2-D grayscale, found shape {arr.shape}")
+    if arr.dtype not in (np.uint8, np.uint16):
+        raise InputError(path, f"image must be 8 or 16 bit, found {arr.dtype}")
+    if min(arr.shape) < 64:
+        raise InputError(path, f"image is too small to register ({arr.shape})")
+    return arr
+
+
+def check_image_content(path, raw: np.ndarray, saturated_fraction: float = 0.02) -> None:
+    """Reject images that carry no information: constant (camera off) or saturated."""
+    lo, hi = int(raw.min()), int(raw.max())
+    if lo == hi:
+        raise InputError(path, f"image is constant (every pixel = {lo}): camera off or blank frame")
+    full = np.iinfo(raw.dtype).max
+    frac = float(np.count_nonzero(raw == full)) / raw.size
+    if frac > saturated_fraction:
+        raise InputError(
+            path,
+            f"image is saturated: {100 * frac:.1f} % of pixels at the {raw.dtype} maximum {full} "
+            f"(more than {100 * saturated_fraction:.1f} %); re-image with a shorter exposure",
+        )
+    if float(np.std(raw.astype(np.float32))) < 1e-3 * max(hi, 1):
+        raise InputError(path, "image has essentially no contrast")
+
+
+def write_tiff16(path, arr: np.ndarray) -> None:
+    import tifffile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tifffile.imwrite(path, np.asarray(arr, dtype=np.uint16), compression=None)
+
+
+# ---------------------------------------------------------------------- YAML / TSV
+
+
+def read_yaml(path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file does not exist")
+    try:
+        with open(path) as fh:
+            data = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"not valid YAML ({exc})") from exc
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a YAML mapping at the top level")
+    return data
+
+
+def write_yaml(path, data: dict) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as fh:
+        yaml.safe_dump(_plain(data), fh, sort_keys=False)
+
+
+def _plain(obj):
+    """numpy scalars/arrays to plain Python, so YAML stays readable."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_tsv(path, rows: list[dict], columns: list[str] | None = None) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if columns is None:
+        columns = list(rows[0].keys()) if rows else []
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=columns, delimiter="\t", extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _fmt(r.get(k, "")) for k in columns})
+
+
+def _fmt(v):
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.6g}"
+    return v
+
+
+def read_tsv(path) -> list[dict]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "file does not exist")
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh, delimiter="\t"))
+
+
+# -------------------------------------------------------------------- print batch
+
+
+@dataclass(frozen=True)
+class BatchMeta:
+    pixel_size_um: float
+    exposure_s: float
+    max_intensity_mw_cm2: float
+    material: str
+    notes: str = ""
+
+    def as_dict(self) -> dict:
+        return dict(
+            pixel_size_um=self.pixel_size_um,
+            exposure_s=self.exposure_s,
+            max_intensity_mw_cm2=self.max_intensity_mw_cm2,
+            material=self.material,
+            notes=self.notes,
+        )
+
+
+_POSITIVE_FIELDS = ("pixel_size_um", "exposure_s", "max_intensity_mw_cm2")
+
+
+def read_batch_meta(path) -> BatchMeta:
+    """batch.yaml of a print batch, checked field by field."""
+    path = Path(path)
+    data = read_yaml(path)
+    for key in _POSITIVE_FIELDS + ("material",):
+        if key not in data:
+            raise InputError(path, f"missing field {key!r}")
+    vals = {}
+    for key in _POSITIVE_FIELDS:
+        v = data[key]
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise InputError(path, f"field {key!r} must be a number, found {v!r}") from None
+        if not math.isfinite(f) or f <= 0:
+            raise InputError(path, f"field {key!r} must be a positive number, found {v!r}")
+        vals[key] = f
+    if not 0.1 <= vals["pixel_size_um"] <= 100:
+        raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
+    material = data["material"]
+    if not isinstance(material, str) or not material.strip():
+        raise InputError(path, "field 'material' must be a non-empty string")
+    notes = data.get("notes") or ""
+    return BatchMeta(material=material, notes=str(notes), **vals)
+
+
+@dataclass(frozen=True)
+class Batch:
+    root: Path
+    meta: BatchMeta
+    masks: dict  # id -> Path
+    images: dict  # id -> Path
+
+    @property
+    def ids(self) -> list[str]:
+        return sorted(self.masks)
+
+
+def open_batch(root) -> Batch:
+    """A print batch in the data contract: batch.yaml, masks/<id>.png, images/<id>.tif.
+
+    Every mask needs exactly one image and every image a mask.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(root, "batch folder does not exist")
+    meta = read_batch_meta(root / "batch.yaml")
+    mdir, idir = root / "masks", root / "images"
+    for d in (mdir, idir):
+        if not d.is_dir():
+            raise InputError(d, "folder missing from the batch")
+    masks = {p.stem: p for p in sorted(mdir.iterdir()) if p.is_file() and not p.name.startswith(".")}
+    for stem, p in masks.items():
+        if p.suffix.lower() != ".png":
+            raise InputError(p, "masks must be .png files")
+    images: dict[str, Path] = {}
+    for p in sorted(idir.iterdir()):
+        if not p.is_file() or p.name.startswith("."):
+            continue
+        if p.suffix.lower() not in IMAGE_SUFFIXES:
+            raise InputError(p, f"unexpected file in images/ (use {', '.join(IMAGE_SUFFIXES)})")
+        if p.stem in images:
+            raise InputError(p, f"two images for the same id {p.stem!r}: {images[p.stem].name} and {p.name}")
+        images[p.stem] = p
+    if not masks:
+        raise InputError(mdir, "no masks in the batch")
+    missing = sorted(set(masks) - set(images))
+    extra = sorted(set(images) - set(masks))
+    if missing:
+        raise InputError(idir, f"no image for mask(s) {', '.join(missing)} (expected images/<id>.tif or .png)")
+    if extra:
+        raise InputError(idir, f"image(s) without a mask: {', '.join(images[e].name for e in extra)}")
+    return Batch(root=root, meta=meta, masks=masks, images=images)
+
+
+def list_pngs(folder) -> dict:
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(folder, "folder does not exist")
+    return {p.stem: p for p in sorted(folder.glob("*.png"))}

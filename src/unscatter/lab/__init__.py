@@ -1,0 +1,68 @@
+"""The virtual lab: a DLP bioprinter and a fluorescence microscope.
+
+It plays the real lab, so it is deliberately richer than Eq. 1 of Guan et al. 2022:
+besides a quadratic illumination field, a Gaussian scattering kernel and a cure
+threshold it has cell-to-cell dose randomness, a saturating polymer density, and
+effects that Eq. 1 lacks (heavy-tailed scattering by default; anisotropy, grey-level
+dose nonlinearity, illumination beyond quadratic and post-wash swelling/erosion can be
+switched on in its config).
+
+Nothing outside ``unscatter.lab`` and its tests may import it or read its config:
+calibration, diagnosis and compensation see only the files a real lab would hand over.
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib import resources
+from pathlib import Path
+
+import yaml
+
+from .microscope import image_print
+from .printer import Printer, polymer_density
+
+__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch"]
+
+
+def default_config() -> dict:
+    with resources.files(__package__).joinpath("default.yaml").open() as fh:
+        return yaml.safe_load(fh)
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (over or {}).items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def load_config(path=None, overrides: dict | None = None) -> dict:
+    """The lab config: package defaults, then a user file, then overrides (deep merge)."""
+    cfg = default_config()
+    if path is not None:
+        from ..io import read_yaml
+
+        cfg = _merge(cfg, read_yaml(path))
+    if overrides:
+        cfg = _merge(cfg, overrides)
+    return cfg
+
+
+def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=None, seed=None, progress=True):
+    """Print every mask in MASK_DIR and image it; write a batch in the data contract.
+
+    The truth (true transforms, noise-free prints in mask coordinates, polymer density)
+    goes to ``truth_dir`` (default: ``<out_batch>.truth``), outside the batch.
+    """
+    from .run import run_batch
+
+    cfg = load_config(lab_config, overrides)
+    if seed is not None:
+        cfg["seed"] = int(seed)
+    out_batch = Path(out_batch)
+    truth_dir = Path(truth_dir) if truth_dir else out_batch.with_name(out_batch.name + ".truth")
+    return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress)

@@ -1,0 +1,62 @@
+"""Run the virtual lab over a folder of masks and write a print batch plus its truth."""
+
+from __future__ import annotations
+
+import shutil
+import zlib
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from ..io import InputError, list_pngs, read_mask, write_png, write_tiff16, write_tsv, write_yaml
+from .microscope import image_print
+from .printer import Printer
+
+
+def mask_rng(seed: int, mask_id: str) -> np.random.Generator:
+    """Each print's randomness depends on the lab seed and the mask id only."""
+    return np.random.default_rng([int(seed), zlib.crc32(mask_id.encode())])
+
+
+def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progress=True) -> list[dict]:
+    masks = list_pngs(mask_dir)
+    if not masks:
+        raise InputError(mask_dir, "no .png masks to print")
+    first = read_mask(next(iter(masks.values())))
+    size = first.shape[0]
+    meta = cfg["batch"]
+    printer = Printer(cfg["printer"], size, meta["pixel_size_um"])
+    mic = cfg["microscope"]
+    level = float(mic["level"])
+
+    for d in (out_batch, truth_dir):
+        if d.exists():
+            shutil.rmtree(d)
+    (out_batch / "masks").mkdir(parents=True)
+    (out_batch / "images").mkdir()
+    (truth_dir / "prints").mkdir(parents=True)
+    (truth_dir / "density").mkdir()
+
+    rows = []
+    for mid, path in tqdm(masks.items(), desc="virtual lab: printing", disable=not progress, unit="print"):
+        mask = read_mask(path)
+        if mask.shape != (size, size):
+            raise InputError(path, f"mask is {mask.shape}, the batch's masks are {size}x{size}")
+        rng = mask_rng(cfg["seed"], mid)
+        rho = printer.density(mask, rng)
+        truth = printer.crop(rho) >= level
+        img, pose, M = image_print(rho, printer.pad, size, mic, rng)
+        shutil.copyfile(path, out_batch / "masks" / f"{mid}.png")
+        write_tiff16(out_batch / "images" / f"{mid}.tif", img)
+        write_png(truth_dir / "prints" / f"{mid}.png", truth)
+        np.save(truth_dir / "density" / f"{mid}.npy", printer.crop(rho).astype(np.float32))
+        rows.append(dict(id=mid, **pose, m00=M[0, 0], m01=M[0, 1], m02=M[0, 2], m10=M[1, 0], m11=M[1, 1], m12=M[1, 2],
+                         solid_fraction=float(truth.mean())))
+    batch_yaml = dict(meta)
+    batch_yaml["camera_offset_adu"] = mic["offset_adu"]
+    batch_yaml["notes"] = f"virtual lab, seed {cfg['seed']}"
+    write_yaml(out_batch / "batch.yaml", batch_yaml)
+    write_tsv(truth_dir / "transforms.tsv", rows)
+    write_yaml(truth_dir / "lab_config.yaml", cfg)
+    return rows
