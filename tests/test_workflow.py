@@ -1,0 +1,201 @@
+"""The Snakemake workflow: config schema, and what a dry-run plans.
+
+Dry-runs only (a couple of seconds each), except the one marked slow. Every run writes
+under a temporary results prefix, so the repository's results/ is never touched.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+# ----------------------------------------------------------------------- helpers
+def snakemake(*args, configs=(), check=True):
+    """Run snakemake in the repository; returns the completed process (output merged)."""
+    cmd = [sys.executable, "-m", "snakemake", *args]
+    for cfg in configs:
+        cmd += ["--configfile", str(cfg)]
+    proc = subprocess.run(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=300)
+    if check and proc.returncode != 0:
+        raise AssertionError(f"{' '.join(cmd)} failed ({proc.returncode}):\n{proc.stdout}")
+    return proc
+
+
+def planned(*args, configs=()):
+    """(rule, wildcards) of every job that a dry-run plans, `all` left out."""
+    out = snakemake("--dry-run", "--cores", "2", *args, configs=configs).stdout
+    jobs, rule = [], None
+    for line in out.splitlines():
+        m = re.match(r"^(?:local)?rule (\w+):$", line)
+        if m:
+            if rule not in (None, "all"):
+                jobs.append((rule, wildcards))
+            rule, wildcards = m.group(1), ""
+            continue
+        m = re.match(r"^\s+wildcards: (.*)$", line)
+        if m and rule:
+            wildcards = m.group(1).strip()
+    if rule not in (None, "all"):
+        jobs.append((rule, wildcards))
+    return sorted(jobs)
+
+
+def write_config(path: Path, **cfg) -> Path:
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def fake_batch(root: Path, name: str, n: int = 2) -> Path:
+    """A small batch in the data contract: batch.yaml, masks/<id>.png, images/<id>.tif."""
+    batch = root / name
+    (batch / "masks").mkdir(parents=True)
+    (batch / "images").mkdir()
+    (batch / "batch.yaml").write_text(
+        yaml.safe_dump(dict(pixel_size_um=2.96, exposure_s=20, max_intensity_mw_cm2=20.8, material="test", notes="fake"))
+    )
+    for i in range(n):
+        mask = np.zeros((64, 64), np.uint8)
+        mask[16:48, 16:48] = 255
+        Image.fromarray(mask, mode="L").save(batch / "masks" / f"p{i}.png")
+        Image.fromarray((mask // 2).astype(np.uint16) + 100).save(batch / "images" / f"p{i}.tif")
+    past = 1_000_000_000  # older than any output the test makes
+    for p in [batch, *batch.rglob("*")]:
+        os.utime(p, (past, past))
+    return batch
+
+
+def schema_defaults(schema: dict):
+    """The config the schema's defaults make (objects: the defaults of their properties)."""
+    if schema.get("type") == "object" and "properties" in schema:
+        return {key: schema_defaults(sub) for key, sub in schema["properties"].items()}
+    return schema["default"]
+
+
+def undocumented(schema: dict, where="config") -> list[str]:
+    missing = []
+    for key, sub in schema.get("properties", {}).items():
+        if not sub.get("description"):
+            missing.append(f"{where}.{key}: no description")
+        if "default" not in sub:
+            missing.append(f"{where}.{key}: no default")
+        missing += undocumented(sub, f"{where}.{key}")
+    return missing
+
+
+def merged(base: dict, over: dict) -> dict:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+# ------------------------------------------------------------------------ config
+def test_config_yaml_equals_schema_defaults():
+    """config/config.yaml and the schema's defaults must not drift apart."""
+    schema = yaml.safe_load(SCHEMA.read_text())
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    assert config == schema_defaults(schema)
+
+
+def test_every_config_key_has_description_and_default():
+    assert undocumented(yaml.safe_load(SCHEMA.read_text())) == []
+
+
+@pytest.mark.parametrize("name", ["config.yaml", "ci.yaml", "paper.yaml"])
+def test_shipped_configs_are_valid(name):
+    schema = yaml.safe_load(SCHEMA.read_text())
+    base = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg = merged(base, yaml.safe_load((REPO / "config" / name).read_text()) or {})
+    jsonschema.Draft202012Validator(schema).validate(cfg)
+
+
+def test_unknown_config_key_is_rejected(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), registration={"mdoe": "affine"})
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0
+    assert "mdoe" in proc.stdout
+
+
+# ---------------------------------------------------------------------- dry-runs
+def test_default_config_dry_run():
+    """The README's `snakemake --cores 2`, as a dry-run."""
+    snakemake("--dry-run", "--cores", "2")
+
+
+def test_default_config_plans_lab_then_registration(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
+    assert planned(configs=[cfg]) == [("register_prints", "batch=lab"), ("trial_masks", ""), ("virtual_lab", "batch=lab")]
+
+
+def test_slurm_profile_dry_run(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
+    out = snakemake("--dry-run", "--workflow-profile", "workflow/profiles/slurm", configs=[cfg]).stdout
+    assert "slurm_partition=" in out
+
+
+def test_batches_source_plans_registration_only(tmp_path):
+    batch = fake_batch(tmp_path, "session1")
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)])
+    assert planned(configs=[cfg]) == [("register_prints", "batch=session1")]
+
+
+def test_adding_a_batch_plans_only_that_batch(tmp_path):
+    results = tmp_path / "results"
+    first, second = fake_batch(tmp_path, "session1"), fake_batch(tmp_path, "session2")
+    # session1 is registered already: its output is newer than its inputs and the rule's script
+    (results / "prints" / "session1").mkdir(parents=True)
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(first), str(second)])
+    assert planned(configs=[cfg]) == [("register_prints", "batch=session2")]
+    # a changed image of session1 reruns session1 too
+    later = time.time() + 60
+    os.utime(first / "images" / "p0.tif", (later, later))
+    assert planned(configs=[cfg]) == [("register_prints", "batch=session1"), ("register_prints", "batch=session2")]
+
+
+def test_batch_without_contract_fails_clearly(tmp_path):
+    (tmp_path / "half" / "masks").mkdir(parents=True)
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(tmp_path / "half")])
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0
+    assert "lacks batch.yaml, images" in proc.stdout
+
+
+def test_duplicate_batch_names_fail_clearly(tmp_path):
+    a, b = fake_batch(tmp_path / "a", "same"), fake_batch(tmp_path / "b", "same")
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(a), str(b)])
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0
+    assert "have the same name 'same'" in proc.stdout
+
+
+# ---------------------------------------------------------------------- real run
+@pytest.mark.slow
+def test_trial_masks_and_virtual_lab_real_run(tmp_path):
+    results = tmp_path / "results"
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), trial_masks={"count": 3})
+    snakemake(str(results / "lab" / "lab"), "--cores", "2", configs=[cfg])
+    batch = results / "lab" / "lab"
+    ids = ["trial_000", "trial_001", "trial_002"]
+    assert sorted(p.stem for p in (batch / "masks").glob("*.png")) == ids
+    assert sorted(p.stem for p in (batch / "images").glob("*.tif")) == ids
+    assert set(yaml.safe_load((batch / "batch.yaml").read_text())) >= {"pixel_size_um", "exposure_s", "max_intensity_mw_cm2", "material", "notes"}
+    assert (results / "lab" / "lab.truth" / "transforms.tsv").is_file()
+    assert "printed and imaged 3 masks" in (results / "logs" / "virtual_lab" / "lab.log").read_text()
+    # nothing left to do; a changed lab seed reruns the lab, not the trial masks
+    assert planned(str(batch), configs=[cfg]) == []
+    cfg2 = write_config(tmp_path / "c2.yaml", results=str(results), trial_masks={"count": 3}, lab={"seed": 7})
+    assert planned(str(batch), configs=[cfg2]) == [("virtual_lab", "batch=lab")]

@@ -1,0 +1,125 @@
+# Config validation, the batch table, code versions and every input function.
+# Nothing here imports unscatter or torch: a dry-run and --lint stay fast.
+
+import hashlib
+import importlib.util
+import re
+from functools import cache
+from pathlib import Path
+
+from snakemake.exceptions import WorkflowError
+from snakemake.utils import validate
+
+
+validate(config, schema="../schemas/config.schema.yaml")
+
+# Every output, log and benchmark lives under this prefix (config/ci.yaml: results/ci).
+RESULTS = config["results"].rstrip("/")
+
+# What a batch folder must hold (README.md, 'Using your own print batches').
+BATCH_CONTRACT = ("batch.yaml", "masks", "images")
+
+
+# ------------------------------------------------------------------------- batches
+def _batch_folders():
+    """Batch name -> folder. The name is the {batch} wildcard of every per-batch output."""
+    if config["source"] == "lab":
+        name = config["lab"]["batch"]
+        return {name: f"{RESULTS}/lab/{name}"}
+    if not config["batches"]:
+        raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
+    folders = {}
+    for entry in config["batches"]:
+        folder = Path(entry) if len(Path(entry).parts) > 1 else Path("data/prints") / entry
+        name = folder.name
+        if name in folders:
+            raise WorkflowError(
+                f"config: batches {folders[name]} and {folder} have the same name {name!r}; "
+                "outputs are named by the batch folder's name, so rename one folder"
+            )
+        missing = [part for part in BATCH_CONTRACT if not (folder / part).exists()]
+        if missing:
+            raise WorkflowError(
+                f"config: batch {entry!r}: {folder} lacks {', '.join(missing)} "
+                f"(a batch holds {', '.join(BATCH_CONTRACT)}; see README.md)"
+            )
+        folders[name] = str(folder)
+    return folders
+
+
+BATCHES = _batch_folders()
+
+
+wildcard_constraints:
+    batch="|".join(re.escape(name) for name in BATCHES),
+
+
+def batch_folder(wildcards):
+    """The folder of a batch: a virtual lab output or a folder the lab handed over."""
+    return BATCHES[wildcards.batch]
+
+
+def batch_files(wildcards):
+    """Every file of a handed-over batch, so that a changed or added image reruns it.
+
+    A virtual lab batch is a directory output of the lab rule and needs no list.
+    """
+    if config["source"] == "lab":
+        return []
+    root = Path(BATCHES[wildcards.batch])
+    files = [root / "batch.yaml"]
+    for sub in ("masks", "images"):
+        files += sorted(p for p in (root / sub).iterdir() if p.is_file() and not p.name.startswith("."))
+    return [str(p) for p in files]
+
+
+# ---------------------------------------------------------------------------- lab
+def lab_config_file(wildcards):
+    """The lab's override file as an input, so that editing it reruns the lab."""
+    return [config["lab"]["config"]] if config["lab"]["config"] else []
+
+
+# -------------------------------------------------------------------- code version
+def _package_dir():
+    # find_spec locates the installed package without importing it.
+    spec = importlib.util.find_spec("unscatter")
+    if spec is not None and spec.submodule_search_locations:
+        return Path(next(iter(spec.submodule_search_locations)))
+    return Path(workflow.basedir) / "src" / "unscatter"
+
+
+PACKAGE_DIR = _package_dir()
+
+
+@cache
+def code_version(*parts):
+    """Hash of the source of the named package modules or subpackages (e.g. "lab", "io").
+
+    Snakemake's code trigger sees only the rule and its script, not the package it calls;
+    this hash goes into params, so a change of the stage's code reruns the stage.
+    A module that does not exist yet hashes as missing (the dry-run still plans it).
+    """
+    digest = hashlib.sha256()
+    for part in parts:
+        path = PACKAGE_DIR / part
+        if path.is_dir():
+            files = sorted(p for p in path.rglob("*") if p.suffix in (".py", ".yaml") and p.is_file())
+        else:
+            files = [path.with_suffix(".py")]
+        for f in files:
+            digest.update(f.relative_to(PACKAGE_DIR).as_posix().encode() + b"\0")
+            digest.update(f.read_bytes() if f.is_file() else b"<missing>")
+            digest.update(b"\0")
+    return digest.hexdigest()[:16]
+
+
+# -------------------------------------------------------------------------- targets
+def registered_prints():
+    return expand(f"{RESULTS}/prints/{{batch}}", batch=BATCHES)
+
+
+def all_input(wildcards):
+    """The final outputs of every stage; a new stage adds its targets here."""
+    targets = []
+    targets += registered_prints()
+    return targets

@@ -1,0 +1,25 @@
+rule virtual_lab:
+    """Print and image every trial mask on the virtual lab: a batch in the data contract.
+
+    The truth (true poses, noise-free prints) goes beside the batch, never into it:
+    no later stage may read it except to score.
+    """
+    input:
+        masks=f"{RESULTS}/trial_masks",
+        lab_config=lab_config_file,
+    output:
+        batch=directory(f"{RESULTS}/lab/{{batch}}"),
+        truth=directory(f"{RESULTS}/lab/{{batch}}.truth"),
+    log:
+        f"{RESULTS}/logs/virtual_lab/{{batch}}.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/virtual_lab/{{batch}}.tsv"
+    params:
+        seed=config["lab"]["seed"],
+        code=code_version("lab", "io"),
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=30,
+    script:
+        "../scripts/lab_print.py"
