@@ -3,6 +3,7 @@
 
 import hashlib
 import importlib.util
+import os
 import re
 from functools import cache
 from pathlib import Path
@@ -30,7 +31,7 @@ def _batch_folders():
         raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
     folders = {}
     for entry in config["batches"]:
-        folder = Path(entry) if len(Path(entry).parts) > 1 else Path("data/prints") / entry
+        folder = Path(entry) if os.sep in entry else Path("data/prints") / entry
         name = folder.name
         if name in folders:
             raise WorkflowError(
