@@ -31,7 +31,8 @@ def _batch_folders():
         raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
     folders = {}
     for entry in config["batches"]:
-        folder = Path(entry) if os.sep in entry else Path("data/prints") / entry
+        bare = entry.rstrip(os.sep)  # "session1/" names data/prints/session1 too
+        folder = Path(bare) if os.sep in bare else Path("data/prints") / bare
         name = folder.name
         if name in folders:
             raise WorkflowError(
