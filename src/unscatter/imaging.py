@@ -269,29 +269,24 @@ def pose_of(M: np.ndarray, design_px: int, image_shape) -> dict:
 
 
 class PrintTemplate:
-    """What a print of a mask looks like, for registration: a soft-thresholded,
-    scattered, field-shaded copy of the mask (the form of Eq. 1 plus a wide tail).
+    """What a print of a mask looks like, for registration: the mask under a smooth
+    field, scattered by a Gaussian core plus a wider Gaussian tail, turned into polymer
+    density by a saturating cure above a gel dose, then blurred by the microscope.
 
     A blurred mask alone is a poor template: prints of grey cells, peripheral features
-    under a weaker field, and small features eroded by scattering all differ from the
-    mask, and ECC absorbs the difference into scale and shift (bias of 1 to 6 px). The
-    template's parameters are properties of the printer, so they are fitted once per
-    batch, jointly over all its prints, which keeps them from trading off against each
-    image's pose.
+    under a weaker field and small features eroded by scattering all differ from the
+    mask, and ECC absorbs the difference into scale and shift (1 to 6 px over the field
+    in our measurements). The template's parameters are properties of the printer, so
+    they are fitted once per batch, jointly over its prints (Powell on the mean
+    correlation at quarter resolution), which keeps them from trading off against each
+    image's pose. It is a registration nuisance model, not the calibrated printer model.
     """
 
-    GRID = {
-        "sigma": (1.0, 2.0, 3.0, 4.0, 6.0, 8.0),  # scattering, design px
-        "tau": (0.3, 0.4, 0.45, 0.5, 0.55, 0.6, 0.7),  # threshold, share of full dose
-        "field_r2": (-0.2, -0.1, -0.05, 0.0, 0.05),  # field = 1 + r2 (X^2+Y^2) + bx X + by Y
-        "field_bx": (-0.06, -0.03, 0.0, 0.03, 0.06),
-        "field_by": (-0.06, -0.03, 0.0, 0.03, 0.06),
-        "tail": (0.0, 0.15, 0.3),  # share of light in a kernel 5x wider
-    }
-    START = dict(sigma=4.0, tau=0.5, field_r2=0.0, field_bx=0.0, field_by=0.0, tail=0.0)
+    NAMES = ("sigma", "gel", "k", "field_r2", "field_bx", "field_by", "tail", "tail_sigma")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.1, 15.0)
 
     def __init__(self, design_px: int, margin: int, factor: int = 1):
-        self.margin, self.f = margin, factor
+        self.margin, self.f, self.design_px = margin, factor, design_px
         n = (design_px + 2 * margin) // factor
         ax = ((np.arange(n) * factor + (factor - 1) / 2) - (design_px + 2 * margin - 1) / 2) / ((design_px - 1) / 2)
         self.X, self.Y = np.meshgrid(ax.astype(np.float32), ax.astype(np.float32))
@@ -303,38 +298,30 @@ class PrintTemplate:
             m = cv2.resize(m, None, fx=1 / self.f, fy=1 / self.f, interpolation=cv2.INTER_AREA)
         return m
 
-    def __call__(self, m: np.ndarray, p: dict) -> np.ndarray:
+    def __call__(self, m: np.ndarray, x) -> np.ndarray:
+        sigma, gel, k, r2, bx, by, tail, tail_sigma = (float(v) for v in x)
         f = self.f
-        e = m * (1 + p["field_r2"] * self.R2 + p["field_bx"] * self.X + p["field_by"] * self.Y)
-        b = cv2.GaussianBlur(e, (0, 0), p["sigma"] / f)
-        if p["tail"] > 0:
-            b = (1 - p["tail"]) * b + p["tail"] * cv2.GaussianBlur(e, (0, 0), 5 * p["sigma"] / f)
-        t = 1.0 / (1.0 + np.exp(-(b - p["tau"]) / 0.04))
-        return cv2.GaussianBlur(t.astype(np.float32), (0, 0), 1.5 / f)
+        e = m * (1 + r2 * self.R2 + bx * self.X + by * self.Y)
+        b = cv2.GaussianBlur(e, (0, 0), max(sigma, 0.3) / f)
+        tail = min(max(tail, 0.0), 0.9)
+        if tail > 0:
+            b = (1 - tail) * b + tail * cv2.GaussianBlur(e, (0, 0), max(tail_sigma, 1.0) / f)
+        r = -np.expm1(-np.maximum(b - gel, 0) / max(k, 1e-3))
+        return cv2.GaussianBlur(r.astype(np.float32), (0, 0), 1.0 / f)
 
 
-def fit_template(tmpl: "PrintTemplate", pairs: list, p0: dict, rounds: int = 2) -> tuple[dict, float]:
-    """Coordinate search over the template grid maximising the mean NCC over prints.
+def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 400) -> tuple[np.ndarray, float]:
+    """Template parameters maximising the mean NCC over prints (scipy's Powell).
 
-    ``pairs``: (padded mask, image warped into padded design coordinates), same grid.
+    ``pairs``: (padded mask, image warped into padded design coordinates), on tmpl's grid.
     """
-    def score(p):
-        return float(np.mean([ncc(reg, tmpl(m, p)) for m, reg in pairs]))
+    from scipy.optimize import minimize
 
-    p, best = dict(p0), score(p0)
-    for _ in range(rounds):
-        changed = False
-        for key, vals in tmpl.GRID.items():
-            for v in vals:
-                if v == p[key]:
-                    continue
-                q = dict(p, **{key: v})
-                c = score(q)
-                if c > best + 1e-6:
-                    best, p, changed = c, q, True
-        if not changed:
-            break
-    return p, best
+    def cost(x):
+        return -float(np.mean([ncc(reg, tmpl(m, x)) for m, reg in pairs]))
+
+    res = minimize(cost, np.asarray(x0, float), method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
+    return res.x, -float(res.fun)
 
 
 def to_design(M: np.ndarray, margin: int) -> np.ndarray:
@@ -428,7 +415,7 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
         raise InputError(Path(batch_dir) / "masks", f"masks must all be square and of one size, found {sorted(shapes)}")
     design_px = sh[0]
     pool = ThreadPoolExecutor(s.threads)
-    bar = tqdm(total=4 * len(ids), desc=f"registering {Path(batch_dir).name}", unit="step", disable=not progress)
+    bar = tqdm(total=5 * len(ids), desc=f"registering {Path(batch_dir).name}", unit="step", disable=not progress)
 
     def pmap(fn, items):
         out = []
@@ -454,6 +441,8 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
         if n_above < s.min_print_px:
             empty.add(mid)
     todo = [mid for mid in ids if mid not in empty and masks[mid].max() > 0]
+    bar.total = 2 * len(ids) + 3 * len(todo)
+    bar.refresh()
 
     # 3. pose with a blurred-mask template, then with the batch's print template
     def first_pose(mid):
@@ -467,30 +456,29 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
 
     poses = dict(zip(todo, pmap(first_pose, todo)))
     full = PrintTemplate(design_px, MARGIN)
-    half = PrintTemplate(design_px, MARGIN, factor=2)
-    p = dict(PrintTemplate.START)
+    quarter = PrintTemplate(design_px, MARGIN, factor=4)
+    x = np.array(PrintTemplate.START)
     tshape = (design_px + 2 * MARGIN,) * 2
+    fit_ids = todo[:: max(1, len(todo) // 12)][:12]  # a spread of prints is enough to fit 8 numbers
     for it in range(2):
         def pair(mid):
-            M = poses[mid][0]
-            reg = cv2.warpAffine(smooth[mid], M, tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
-            reg = cv2.resize(reg, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
-            return half.padded(masks[mid]), reg
-        pairs = list(pool.map(pair, todo))
-        if pairs:
-            p, fit = fit_template(half, pairs, p)
-            log.info("print template (round %d): %s, mean NCC %.4f", it + 1, p, fit)
+            reg = cv2.warpAffine(smooth[mid], poses[mid][0], tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+            return quarter.padded(masks[mid]), cv2.resize(reg, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+
+        if fit_ids:
+            x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
+            log.info("print template (round %d): %s, mean NCC %.4f", it + 1, dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
 
         def refine(mid):
             M, ok = poses[mid]
             try:
-                M, _ = refine_ecc(full(full.padded(masks[mid]), p), smooth[mid], M, (1,))
+                M, _ = refine_ecc(full(full.padded(masks[mid]), x), smooth[mid], M, (1,))
                 return M, ok
             except cv2.error:
                 return M, False
 
         poses = dict(zip(todo, pmap(refine, todo)))
-    bar.update(len(ids) - len(todo))
+    p = dict(zip(PrintTemplate.NAMES, (float(v) for v in x)))
 
     # 4. warp, threshold, QC, write
     def finish(mid):
@@ -513,7 +501,7 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
         M = to_design(M, MARGIN)
         pose = pose_of(M, design_px, k.c.shape)
         reg = warp_to_design(k.c, M, design_px)
-        tpl = full(full.padded(mask), p)[MARGIN:-MARGIN, MARGIN:-MARGIN]
+        tpl = full(full.padded(mask), x)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4))
