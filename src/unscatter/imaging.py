@@ -335,6 +335,15 @@ def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
     return cv2.warpAffine(c, M.astype(np.float64), (design_px, design_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
 
 
+def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int):
+    """The corrected image in design coordinates and the print: smoothed against noise
+    over about one image pixel, then the batch threshold. Returns (registered, print)."""
+    reg = warp_to_design(c, M, design_px)
+    scale = np.sqrt(abs(np.linalg.det(M[:, :2])))
+    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), max(0.5, 0.6 / scale))
+    return reg, reg_s >= thr
+
+
 def coverage(M: np.ndarray, mask: np.ndarray, image_shape, margin_px=8) -> float:
     """Share of the mask's exposed area (plus a margin) that lands inside the image."""
     exposed = ndimage.binary_dilation(mask > 0, iterations=margin_px)
@@ -500,7 +509,7 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
             M = project_similarity(M, ((tshape[1] - 1) / 2, (tshape[0] - 1) / 2))
         M = to_design(M, MARGIN)
         pose = pose_of(M, design_px, k.c.shape)
-        reg = warp_to_design(k.c, M, design_px)
+        reg, printed = threshold_print(k.c, M, thr, design_px)
         tpl = full(full.padded(mask), x)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
@@ -519,9 +528,6 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
             reasons.append(f"registration score {score:.2f} below {s.min_score}")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
-        # smoothing against noise of about one image pixel, then the batch threshold
-        reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), max(0.5, 0.6 / pose["scale"]))
-        printed = reg_s >= thr
         row["solid_fraction"] = round(float(printed.mean()), 5)
         write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
         if reasons:

@@ -48,13 +48,17 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
         truth = printer.crop(rho) >= level
         img, pose, M = image_print(rho, printer.pad, size, mic, rng)
         shutil.copyfile(path, out_batch / "masks" / f"{mid}.png")
-        write_tiff16(out_batch / "images" / f"{mid}.tif", img)
+        if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
+            write_png(out_batch / "images" / f"{mid}.png", (img >> 8).astype(np.uint8))
+        else:
+            write_tiff16(out_batch / "images" / f"{mid}.tif", img)
         write_png(truth_dir / "prints" / f"{mid}.png", truth)
         np.save(truth_dir / "density" / f"{mid}.npy", printer.crop(rho).astype(np.float32))
         rows.append(dict(id=mid, **pose, m00=M[0, 0], m01=M[0, 1], m02=M[0, 2], m10=M[1, 0], m11=M[1, 1], m12=M[1, 2],
                          solid_fraction=float(truth.mean())))
     batch_yaml = dict(meta)
-    batch_yaml["camera_offset_adu"] = mic["offset_adu"]
+    if mic.get("declare_offset", True):
+        batch_yaml["camera_offset_adu"] = mic["offset_adu"] / (256 if mic.get("format") == "png8" else 1)
     batch_yaml["notes"] = f"virtual lab, seed {cfg['seed']}"
     write_yaml(out_batch / "batch.yaml", batch_yaml)
     write_tsv(truth_dir / "transforms.tsv", rows)
