@@ -84,3 +84,9 @@ def test_print_that_fails_qc_is_never_passed_on(lab_batch, tmp_path):
     assert rows["trial_002"]["status"] == "failed" and rows["trial_002"]["reason"]
     assert not (tmp_path / "reg2" / "trial_002.png").exists()
     assert (tmp_path / "reg2" / "trial_001.png").exists()
+
+
+def test_affine_mode_registers_as_well(lab_batch, tmp_path):
+    register_batch(lab_batch, tmp_path / "reg", mode="affine", progress=False)
+    rms, ious = _evaluate(tmp_path / "reg", lab_batch.with_name(lab_batch.name + ".truth"))
+    assert rms.mean() <= 0.6 and ious.mean() >= 0.97
