@@ -1,0 +1,264 @@
+"""Calibration of Eq. 1 on virtual-lab prints whose printer is exactly Eq. 1 (plus the
+lab's cell-to-cell dose noise), and the handling of bad inputs."""
+
+from __future__ import annotations
+
+import os
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from unscatter import metrics
+from unscatter.calibration import calibrate, load_prints
+from unscatter.io import InputError, read_mask, read_tsv, read_yaml, write_png, write_tsv, write_yaml
+from unscatter.masks import trial_masks
+from unscatter.model import design_coords, load_params
+
+# the lab with every effect beyond Eq. 1 switched off
+EQ1_LAB = {"printer": {"kernel": {"heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
+                       "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0}}
+FAST = dict(population=12, generations=4, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False)
+
+
+def write_prints_dir(out, prints: dict, mask_paths: dict, status=None, pixel_size_um=2.96):
+    """A registration-output-like folder: <id>.png, qc.tsv (mask paths relative), batch.yaml."""
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for mid, pr in prints.items():
+        st = (status or {}).get(mid) or ("ok" if pr is not None and pr.any() else "empty")
+        if pr is not None:
+            write_png(out / f"{mid}.png", pr)
+        rel = os.path.relpath(mask_paths[mid], out)  # relative to the prints folder, as registration writes it
+        rows.append(dict(id=mid, status=st, reason="", mask=rel))
+    write_tsv(out / "qc.tsv", rows, ["id", "status", "reason", "mask"])
+    write_yaml(out / "batch.yaml", dict(pixel_size_um=pixel_size_um, material="test"))
+    return out
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    from unscatter.lab import Printer, load_config
+
+    root = tmp_path_factory.mktemp("lab")
+    cfg = load_config(overrides=EQ1_LAB)
+    px = cfg["batch"]["pixel_size_um"]
+    printer = Printer(cfg["printer"], 512, px)
+    level = cfg["microscope"]["level"]
+    masks = trial_masks(32, seed=0, size=512)
+    mask_paths, A, B = {}, {}, {}
+    for i, (mid, m) in enumerate(masks.items()):
+        mask_paths[mid] = root / "masks" / f"{mid}.png"
+        write_png(mask_paths[mid], m)
+        # two prints of every mask with different lab randomness: the noise floor
+        A[mid] = printer.crop(printer.density(m, np.random.default_rng([1, i]))) >= level
+        B[mid] = printer.crop(printer.density(m, np.random.default_rng([2, i]))) >= level
+    il, pc = cfg["printer"]["illumination"], cfg["printer"]
+    truth = dict(c0=1.0, c1=il["cx2"], c2=il["cy2"], c3=il["cx"], c4=il["cy"],
+                 sigma_px=pc["kernel"]["sigma_um"] / px, T=pc["cure"]["threshold"])
+    floor = float(np.mean([metrics.iou(A[k], B[k]) for k in masks]))
+    ids8 = list(masks)[:8]
+    return SimpleNamespace(
+        root=root, masks=masks, mask_paths=mask_paths, prints=A, truth=truth, floor=floor,
+        dir=write_prints_dir(root / "prints", A, mask_paths),
+        dir8=write_prints_dir(root / "prints8", {k: A[k] for k in ids8}, mask_paths),
+    )
+
+
+@pytest.fixture(scope="module")
+def calibrated(lab, tmp_path_factory):
+    out = tmp_path_factory.mktemp("calibration")
+    params = calibrate([lab.dir], out, seed=0, folds=4, bootstrap=6, progress=False)
+    return SimpleNamespace(params=params, out=out)
+
+
+# ------------------------------------------------------------------- recovery
+
+
+def test_recovers_sigma_and_threshold(lab, calibrated):
+    v, t = calibrated.params.values, lab.truth
+    assert v["c0"] == 1.0  # the gauge
+    assert abs(v["sigma_px"] / t["sigma_px"] - 1) < 0.05
+    assert abs(v["T"] / t["T"] - 1) < 0.03
+    # the illumination field, compared as a field (its coefficients trade off a little)
+    x = design_coords(64).double().numpy()
+    X, Y = np.meshgrid(x, x)
+
+    def field(c):
+        return c["c0"] + c["c1"] * X**2 + c["c2"] * Y**2 + c["c3"] * X + c["c4"] * Y
+
+    assert np.abs(field(v) - field(t)).max() < 0.04
+
+
+def test_heldout_iou_reaches_the_labs_noise_floor(lab, calibrated):
+    val = calibrated.params.info["validation"]
+    assert val["folds"] == 4
+    # the model is the noise-free mean print, so it may match a print better than a
+    # second print of the same mask does; it must not be worse by more than a little
+    assert val["heldout_iou_mean"] >= lab.floor - 0.01
+    assert abs(val["heldout_iou_mean"] - val["in_sample_iou_mean"]) < 0.005  # no overfitting
+    rows = read_tsv(calibrated.out / "cv.tsv")
+    assert len(rows) == 32 and {r["id"] for r in rows} == set(lab.masks)
+    assert np.mean([float(r["iou"]) for r in rows]) == pytest.approx(val["heldout_iou_mean"], abs=1e-5)
+
+
+def test_outputs(lab, calibrated):
+    out = calibrated.out
+    d = read_yaml(out / "params.yaml")
+    assert d["model"] == "eq1" and "c0 is fixed to 1" in d["gauge"]
+    assert d["data"]["prints"] == 32 and d["data"]["ids"] == list(lab.masks)
+    assert d["data"]["prints_dirs"] == [str(lab.dir.resolve())]
+    assert d["objective"]["value"] <= d["objective"]["ga"]
+    assert d["fit"]["on_bound"] == [] and d["warnings"] == []
+    for k in ("c1", "c2", "c3", "c4", "sigma_px", "T"):
+        e = d["parameters"][k]
+        assert e["std"] > 0 and e["q05"] <= e["q95"], k
+    assert d["uncertainty"]["used"] == 6
+    assert "std" not in d["parameters"]["c0"]
+    hist = read_tsv(out / "history.tsv")
+    assert [int(r["generation"]) for r in hist] == list(range(31))
+    best = [float(r["best"]) for r in hist]
+    assert all(a >= b for a, b in zip(best, best[1:]))  # elitism: the best never gets worse
+    res = sorted((out / "residuals").glob("*.png"))
+    assert len(res) == 32
+    from PIL import Image
+
+    with Image.open(res[0]) as im:
+        assert im.mode == "RGB" and im.size == (512, 512)
+    assert (out / "fit.png").stat().st_size > 10_000
+    assert len(read_tsv(out / "bootstrap.tsv")) == 6
+
+
+def test_simulate_dir_reproduces_the_fit(lab, calibrated, tmp_path):
+    from unscatter.calibration import simulate_dir
+
+    masks = tmp_path / "m"
+    masks.mkdir()
+    for k in list(lab.masks)[:3]:
+        shutil.copy(lab.mask_paths[k], masks / f"{k}.png")
+    paths = simulate_dir(calibrated.out / "params.yaml", masks, tmp_path / "sim")
+    assert [p.name for p in paths] == [f"{k}.png" for k in list(lab.masks)[:3]]
+    sim = read_mask(paths[0])
+    assert set(np.unique(sim)) <= {0, 255}
+    in_sample = {r["id"]: float(r["in_sample_iou"]) for r in read_tsv(calibrated.out / "cv.tsv")}
+    for p in paths:  # the same prints the calibration scored
+        assert metrics.iou(read_mask(p) > 0, lab.prints[p.stem]) == pytest.approx(in_sample[p.stem], abs=1e-5)
+
+
+def test_seeded_runs_are_reproducible(lab, tmp_path):
+    a = calibrate([lab.dir8], tmp_path / "a", seed=3, **FAST)
+    b = calibrate([lab.dir8], tmp_path / "b", seed=3, **FAST)
+    assert a.values == b.values
+    assert read_tsv(tmp_path / "a" / "history.tsv") == read_tsv(tmp_path / "b" / "history.tsv")
+
+
+def test_bounds_that_exclude_the_optimum_are_flagged(lab, tmp_path):
+    with pytest.warns(UserWarning, match="sigma_px .* upper bound"):
+        p = calibrate([lab.dir8], tmp_path, bounds={"sigma_px": (0.5, 2.0)}, **FAST)
+    assert p.info["fit"]["on_bound"] == ["sigma_px"]
+    d = read_yaml(tmp_path / "params.yaml")
+    assert d["parameters"]["sigma_px"]["on_bound"] == "upper"
+    assert any("sigma_px" in w for w in d["warnings"])
+
+
+def test_unknown_setting_is_an_error(lab, tmp_path):
+    with pytest.raises(TypeError, match="unknown calibration setting"):
+        calibrate([lab.dir8], tmp_path, populaton=3)
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def _small(tmp_path, n=4, size=64, seed=0):
+    masks = trial_masks(n, seed=seed, size=size)
+    paths = {}
+    for k, m in masks.items():
+        paths[k] = tmp_path / "masks" / f"{k}.png"
+        write_png(paths[k], m)
+    prints = {k: m > 127 for k, m in masks.items()}
+    return masks, paths, prints
+
+
+def test_failed_prints_are_never_used_empty_ones_are(tmp_path):
+    masks, paths, prints = _small(tmp_path)
+    ids = list(masks)
+    prints[ids[1]] = np.zeros((64, 64), bool)
+    d = write_prints_dir(tmp_path / "p", {**prints, ids[2]: None}, paths, status={ids[2]: "failed"})
+    data = load_prints([d])
+    assert data.ids == [ids[0], ids[1], ids[3]]
+    assert data.status == ["ok", "empty", "ok"] and data.failed == [ids[2]]
+
+
+def test_prints_of_different_sizes(tmp_path):
+    masks, paths, prints = _small(tmp_path)
+    k = list(masks)[2]
+    big = trial_masks(1, seed=9, size=96)["trial_000"]
+    write_png(paths[k], big)
+    prints[k] = big > 127
+    d = write_prints_dir(tmp_path / "p", prints, paths)
+    with pytest.raises(InputError, match="96x96, the others are 64x64") as e:
+        load_prints([d])
+    assert e.value.path.name == f"{k}.png"
+
+
+def test_print_and_mask_of_different_sizes(tmp_path):
+    masks, paths, prints = _small(tmp_path)
+    k = list(masks)[1]
+    prints[k] = np.ones((32, 32), bool)
+    d = write_prints_dir(tmp_path / "p", prints, paths)
+    with pytest.raises(InputError, match="mask coordinates"):
+        load_prints([d])
+
+
+def test_no_usable_prints(tmp_path):
+    masks, paths, prints = _small(tmp_path)
+    d = write_prints_dir(tmp_path / "p", {k: None for k in masks}, paths, status={k: "failed" for k in masks})
+    with pytest.raises(InputError, match="no usable prints") as e:
+        calibrate([d], tmp_path / "out")
+    assert e.value.path == d
+
+
+@pytest.mark.parametrize("fill, word", [(False, "empty"), (True, "solid")])
+def test_prints_without_edges_identify_nothing(tmp_path, fill, word):
+    masks, paths, _ = _small(tmp_path)
+    d = write_prints_dir(tmp_path / "p", {k: np.full((64, 64), fill) for k in masks}, paths)
+    with pytest.raises(InputError, match=f"all 4 usable prints are {word}.*cannot be identified"):
+        calibrate([d], tmp_path / "out")
+
+
+def test_bad_metadata(tmp_path):
+    masks, paths, prints = _small(tmp_path)
+    d = write_prints_dir(tmp_path / "p", prints, paths)
+    e2 = write_prints_dir(tmp_path / "q", prints, paths, pixel_size_um=3.5)
+    with pytest.raises(InputError, match="pixel_size_um 3.5 differs"):
+        load_prints([d, e2])
+    (d / "batch.yaml").unlink()
+    with pytest.raises(InputError, match="does not exist"):
+        load_prints([d])
+    with pytest.raises(InputError, match="prints folder does not exist"):
+        load_prints([tmp_path / "nope"])
+    f = write_prints_dir(tmp_path / "r", prints, paths)
+    rows = read_tsv(f / "qc.tsv")
+    write_tsv(f / "qc.tsv", rows, ["id", "status", "reason"])
+    with pytest.raises(InputError, match="missing column"):
+        load_prints([f])
+    rows[0]["status"] = "maybe"
+    write_tsv(f / "qc.tsv", rows)
+    with pytest.raises(InputError, match="status 'maybe'"):
+        load_prints([f])
+    g = write_prints_dir(tmp_path / "s", prints, paths)
+    write_png(g / f"{list(masks)[0]}.png", np.full((64, 64), 128, np.uint8))
+    with pytest.raises(InputError, match="binary"):
+        load_prints([g])
+
+
+def test_several_prints_dirs_are_pooled(lab, tmp_path):
+    d2 = tmp_path / "other"
+    shutil.copytree(lab.dir8, d2)
+    rows = read_tsv(d2 / "qc.tsv")
+    for r in rows:  # absolute mask paths work too
+        r["mask"] = str(lab.mask_paths[r["id"]])
+    write_tsv(d2 / "qc.tsv", rows)
+    data = load_prints([lab.dir8, d2])
+    assert len(data) == 16 and data.labels[0] == f"prints8/{data.ids[0]}" and data.labels[8] == f"other/{data.ids[0]}"
