@@ -545,6 +545,7 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
     write_yaml(out_dir / "batch.yaml", dict(meta_raw, source_batch=str(Path(batch_dir))))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p))
+    contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
     failed = [r for r in rows if r["status"] == "failed"]
     for r in failed:
         log.warning("%s: registration failed: %s", r["id"], r["reason"])
@@ -555,6 +556,27 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
             "re-image them, remove them from the batch, or set registration.skip_failed to go on without them."
         )
     return rows
+
+
+def contact_sheet(overlay_dir: Path, rows: list[dict], out_path: Path, thumb: int = 160, cols: int = 8) -> None:
+    """All overlays of a batch on one page, each labelled with its id and QC status."""
+    from PIL import Image, ImageDraw
+
+    n = len(rows)
+    ncols = min(cols, max(n, 1))
+    nrows = (n + ncols - 1) // ncols
+    sheet = Image.new("RGB", (ncols * thumb, nrows * (thumb + 14)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    colour = {"ok": (0, 120, 0), "empty": (90, 90, 90), "failed": (200, 0, 0)}
+    for i, r in enumerate(rows):
+        x, y = (i % ncols) * thumb, (i // ncols) * (thumb + 14)
+        p = overlay_dir / f"{r['id']}.png"
+        if p.is_file():
+            with Image.open(p) as im:
+                sheet.paste(im.convert("RGB").resize((thumb, thumb)), (x, y + 14))
+        draw.text((x + 2, y + 1), f"{r['id']} {r['status']}", fill=colour.get(r["status"], (0, 0, 0)))
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out_path)
 
 
 def transform_rms_px(M_est: np.ndarray, M_true: np.ndarray, design_px: int, step: int = 8) -> float:
