@@ -262,3 +262,28 @@ def test_several_prints_dirs_are_pooled(lab, tmp_path):
     write_tsv(d2 / "qc.tsv", rows)
     data = load_prints([lab.dir8, d2])
     assert len(data) == 16 and data.labels[0] == f"prints8/{data.ids[0]}" and data.labels[8] == f"other/{data.ids[0]}"
+
+
+# ------------------------------------------------------------------------ CLI
+
+
+def test_cli_calibrate_and_simulate(lab, tmp_path):
+    from click.testing import CliRunner
+
+    from unscatter.cli import main
+
+    r = CliRunner().invoke(main, ["calibrate", str(lab.dir8), "--out", str(tmp_path / "cal"), "--seed", "1",
+                                  "--population", "12", "--generations", "3", "--folds", "2", "--bootstrap", "2",
+                                  "--bounds", "sigma_px=0.5,2"])
+    assert r.exit_code == 0, r.output
+    assert "calibrated eq1 on 8 prints" in r.output and "held-out IoU" in r.output
+    assert "warning: sigma_px" in r.output  # the fit sits on the upper bound given
+    p = load_params(tmp_path / "cal" / "params.yaml")
+    assert p.bounds["sigma_px"] == (0.5, 2.0) and p.info["fit"]["seed"] == 1
+    r = CliRunner().invoke(main, ["simulate", str(tmp_path / "cal" / "params.yaml"), str(lab.root / "masks"), str(tmp_path / "sim")])
+    assert r.exit_code == 0, r.output
+    assert len(list((tmp_path / "sim").glob("*.png"))) == 32
+    r = CliRunner().invoke(main, ["calibrate", str(tmp_path / "nope"), "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "prints folder does not exist" in r.output
+    r = CliRunner().invoke(main, ["calibrate", str(lab.dir8), "--out", str(tmp_path / "x"), "--bounds", "sigma_px=1"])
+    assert r.exit_code == 2 and "NAME=LOWER,UPPER" in r.output

@@ -221,8 +221,10 @@ def test_load_params_rejects_bad_files(tmp_path):
         load_params(tmp_path / "b.yaml")
     with pytest.raises(InputError, match="does not exist"):
         load_params(tmp_path / "missing.yaml")
-    with pytest.raises(KeyError):
+    with pytest.raises(ValueError, match="unknown parameter 'sigma'"):
         default_params(bounds={"sigma": (1, 2)})
+    with pytest.raises(ValueError, match="lower < upper"):
+        default_params(bounds={"sigma_px": (2, 1)})
 
 
 def test_simulate_returns_binary_prints(tmp_path, border_mask):

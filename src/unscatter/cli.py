@@ -92,5 +92,71 @@ def register(batch_dir, out_dir, mode, level, min_score, skip_failed):
     click.echo(f"registered {len(rows)} prints: {n['ok']} ok, {n['empty']} empty, {n['failed']} failed -> {out_dir}")
 
 
+# ------------------------------------------------------------------- calibrate
+def _bounds(ctx, param, value):
+    out = {}
+    for item in value:
+        try:
+            name, rng = item.split("=", 1)
+            lo, hi = (float(x) for x in rng.split(","))
+        except ValueError:
+            raise click.BadParameter(f"{item!r}: use NAME=LOWER,UPPER, e.g. sigma_px=0.5,10") from None
+        out[name.strip()] = (lo, hi)
+    return out or None
+
+
+@main.command("calibrate")
+@click.argument("prints_dirs", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--model", default="eq1", show_default=True, help="Printer model (eq1: Guan et al. 2022, Eq. 1).")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--population", default=48, show_default=True, help="GA population.")
+@click.option("--generations", default=30, show_default=True, help="GA generations.")
+@click.option("--bounds", multiple=True, callback=_bounds, metavar="NAME=LO,HI", help="Search bounds of a parameter (repeatable).")
+@click.option("--free-c0", is_flag=True, help="Fit c0 too (the paper's 7 parameters; the gauge is then not fixed).")
+@click.option("--refine/--no-refine", default=True, show_default=True, help="Gradient refinement after the GA.")
+@click.option("--folds", default=4, show_default=True, help="k-fold cross-validation over prints (0: none).")
+@click.option("--bootstrap", default=20, show_default=True, help="Bootstrap replicates over prints (0: none).")
+@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device):
+    """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
+    import warnings
+
+    from .calibration import calibrate
+    from .model import default_params, model_names
+
+    if model not in model_names():
+        raise click.BadParameter(f"unknown model {model!r}; known: {', '.join(model_names())}", param_hint="--model")
+    try:
+        default_params(model, bounds=bounds)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--bounds") from None
+
+    with warnings.catch_warnings():  # the flags are echoed below, once, without a source line
+        warnings.simplefilter("ignore", UserWarning)
+        p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
+                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device)
+    v, val = p.values, p.info.get("validation", {})
+    msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
+    heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""
+    click.echo(f"calibrated {model} on {p.info['data']['prints']} prints: {msg}; objective {p.info['objective']['value']:.5f}"
+               f"{heldout} -> {out_dir / 'params.yaml'}")
+    for w in p.info.get("warnings", []):
+        click.echo(f"warning: {w}", err=True)
+
+
+# -------------------------------------------------------------------- simulate
+@main.command("simulate")
+@click.argument("params", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("mask_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+def simulate_cmd(params, mask_dir, out_dir, device):
+    """Simulated binary prints (0/255 <id>.png) of every mask in MASK_DIR under PARAMS (params.yaml)."""
+    from .calibration import simulate_dir
+
+    paths = simulate_dir(params, mask_dir, out_dir, device=device)
+    click.echo(f"simulated {len(paths)} prints -> {out_dir}")
+
 if __name__ == "__main__":  # pragma: no cover
     main()

@@ -609,7 +609,7 @@ def default_params(model: str = "eq1", free_c0: bool = False, bounds: dict | Non
     bnds = {k: tuple(float(x) for x in s.bounds) for k, s in m.specs.items()}
     for k, b in (bounds or {}).items():
         if k not in bnds:
-            raise KeyError(f"bounds given for unknown parameter {k!r}; model {model!r} has {list(bnds)}")
+            raise ValueError(f"bounds given for unknown parameter {k!r}; model {model!r} has {list(bnds)}")
         lo, hi = (float(x) for x in b)
         if not lo < hi:
             raise ValueError(f"bounds for {k!r} must be lower < upper, got {b}")
