@@ -116,6 +116,7 @@ def test_outputs(lab, calibrated):
         assert e["std"] > 0 and e["q05"] <= e["q95"], k
     assert d["uncertainty"]["used"] == 6
     assert "std" not in d["parameters"]["c0"]
+    assert calibrated.params.info["parameter_extras"]["sigma_px"]["std"] == d["parameters"]["sigma_px"]["std"]
     hist = read_tsv(out / "history.tsv")
     assert [int(r["generation"]) for r in hist] == list(range(31))
     best = [float(r["best"]) for r in hist]

@@ -196,6 +196,7 @@ def test_fixed_masks_evaluator_equals_model():
 def test_params_round_trip(tmp_path):
     p = default_params(pixel_size_um=2.96).with_values(c1=-0.07, c3=0.03, sigma_px=4.1, T=0.48)
     assert p.fixed == ("c0",) and "c0" not in p.free and p.values["c0"] == 1.0
+    p.info["parameter_extras"] = {"T": {"std": 0.01, "q05": 0.47, "q95": 0.49}}
     save_params(tmp_path / "params.yaml", p, objective=dict(value=0.01))
     d = read_yaml(tmp_path / "params.yaml")
     assert "c0 is fixed to 1" in d["gauge"] and "Eq. 1" in d["equation"]
@@ -204,6 +205,7 @@ def test_params_round_trip(tmp_path):
     q = load_params(tmp_path / "params.yaml")
     assert q.values == pytest.approx(p.values) and q.fixed == p.fixed and q.bounds == p.bounds
     assert q.pixel_size_um == 2.96 and q.info["objective"]["value"] == 0.01
+    assert d["parameters"]["T"]["std"] == 0.01 and q.info["parameter_extras"] == p.info["parameter_extras"]
     free = default_params(free_c0=True)
     save_params(tmp_path / "free.yaml", free)
     r = load_params(tmp_path / "free.yaml")

@@ -552,7 +552,8 @@ class Params:
     """Parameter values of a named model, with bounds and the fixed (gauge) parameters.
 
     ``info`` carries everything else params.yaml holds (fit, data, uncertainty, ...)
-    through a load/save round trip.
+    through a load/save round trip; ``info["parameter_extras"]`` holds the extra keys
+    of each parameter's entry (e.g. std, q05, q95, on_bound).
     """
 
     model: str
@@ -587,6 +588,7 @@ class Params:
         for k, spec in m.specs.items():
             lo, hi = self.bounds[k]
             params[k] = dict(value=float(self.values[k]), fixed=k in self.fixed, lower=float(lo), upper=float(hi), unit=spec.unit, doc=spec.doc)
+            params[k].update(self.info.get("parameter_extras", {}).get(k, {}))
         d = dict(
             model=self.model,
             equation=EQUATION + "  (Guan et al. 2022, Eq. 1)",
@@ -596,9 +598,16 @@ class Params:
             pixel_size_um=self.pixel_size_um,
             parameters=params,
         )
+        derived = {}
         if self.pixel_size_um and "sigma_px" in self.values:
-            d["derived"] = dict(sigma_um=float(self.values["sigma_px"]) * float(self.pixel_size_um))
-        d.update({k: v for k, v in self.info.items() if k not in d})
+            derived["sigma_um"] = float(self.values["sigma_px"]) * float(self.pixel_size_um)
+        if "c0" in self.values and "c0" not in self.fixed and self.values["c0"] > 0:
+            # the gauge-free numbers: comparable between fits (c0 = 1 convention)
+            c0 = float(self.values["c0"])
+            derived["per_c0"] = {k: float(self.values[k]) / c0 for k in ("c1", "c2", "c3", "c4", "T") if k in self.values}
+        if derived:
+            d["derived"] = derived
+        d.update({k: v for k, v in self.info.items() if k not in d and k != "parameter_extras"})
         return d
 
 
@@ -647,7 +656,7 @@ def load_params(path) -> Params:
     unknown = sorted(set(ps) - set(m.specs))
     if unknown:
         raise InputError(path, f"parameters {unknown} are not parameters of model {name!r}")
-    values, bounds, fixed = {}, {}, []
+    values, bounds, fixed, extras = {}, {}, [], {}
     for k, spec in m.specs.items():
         if k not in ps:
             raise InputError(path, f"parameter {k!r} missing")
@@ -664,12 +673,17 @@ def load_params(path) -> Params:
         bounds[k] = (float(e.get("lower", spec.bounds[0])), float(e.get("upper", spec.bounds[1])))
         if e.get("fixed", False):
             fixed.append(k)
+        more = {x: y for x, y in e.items() if x not in ("value", "fixed", "lower", "upper", "unit", "doc")}
+        if more:
+            extras[k] = more
     if values.get("sigma_px", 1.0) < 0:
         raise InputError(path, "sigma_px must be >= 0")
     if values.get("T", 1.0) <= 0:
         raise InputError(path, "the threshold T must be > 0")
     pix = d.get("pixel_size_um")
     info = {k: v for k, v in d.items() if k not in _STRUCTURAL}
+    if extras:
+        info["parameter_extras"] = extras
     return Params(name, values, bounds, tuple(fixed), float(pix) if pix else None, info)
 
 
