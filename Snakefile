@@ -13,6 +13,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/masks.smk"
 include: "workflow/rules/lab.smk"
 include: "workflow/rules/registration.smk"
+include: "workflow/rules/calibration.smk"
 
 
 rule all:

@@ -120,8 +120,13 @@ def registered_prints():
     return expand(f"{RESULTS}/prints/{{batch}}", batch=BATCHES)
 
 
+def calibrated_model():
+    return f"{RESULTS}/calibration/{config['calibration']['model']}"
+
+
 def all_input(wildcards):
     """The final outputs of every stage; a new stage adds its targets here."""
     targets = []
     targets += registered_prints()
+    targets.append(calibrated_model())
     return targets
