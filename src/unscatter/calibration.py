@@ -200,7 +200,7 @@ class Objective:
 
     def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None):
         self.sim = sim
-        self.target = target  # (B, h, w) measured solid fraction on the sim's grid
+        self.target = target  # (B, h, w) measured print (0/1) at the sim's sample points
         B = target.shape[0]
         w = torch.ones(B) if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
         self.weights = (w / w.sum()).to(target.device, torch.float32)
@@ -208,10 +208,12 @@ class Objective:
         # for a binary simulated print s: (t - s)^2 = t^2 + s (1 - 2 t), so one masked sum per print
         self.base = (target**2).mean(dim=(1, 2))
         self.gain = (1 - 2 * target) / npx
-        # chunks of individuals with ~16 MB of spectra: big enough to amortise reading the
-        # precomputed spectra, small enough to reuse memory instead of faulting in new pages
-        sh = sim.shape
-        self.chunk = chunk or max(1, int(16e6 // max(1, B * sh[0] * (sh[1] // 2 + 1) * 8)))
+        # blocks of individuals x masks with ~16 MB of spectra: big enough to amortise
+        # reading the precomputed spectra, small enough to reuse freed memory instead of
+        # faulting in fresh pages (which costs more than the arithmetic here)
+        per = sim.shape[0] * (sim.shape[1] // 2 + 1) * 8  # one mask, one individual
+        self.chunk = chunk or max(1, int(16e6 // (B * per)))
+        self.block = B if self.chunk * B * per <= 32e6 else max(1, int(16e6 // (self.chunk * per)))
 
     @classmethod
     def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None):
@@ -226,7 +228,7 @@ class Objective:
     def subset(self, idx, weights=None) -> Objective:
         idx = np.asarray(idx)
         t = self.target[torch.as_tensor(idx, device=self.target.device)]
-        return Objective(self.sim.subset(idx), t, weights, self.chunk)
+        return Objective(self.sim.subset(idx), t, weights)
 
     def per_print(self, theta) -> torch.Tensor:
         """(P, B) mean squared distance per print, hard threshold."""
@@ -235,8 +237,13 @@ class Objective:
         with torch.no_grad():
             for i in range(0, P, self.chunk):
                 sub = {k: v[i : i + self.chunk] for k, v in theta.items()}
-                s = self.sim.prints(sub)
-                out.append(self.base[None] + torch.where(s, self.gain, 0.0).sum(dim=(2, 3)))
+                B = self.target.shape[0]
+                parts = []
+                for j in range(0, B, self.block):
+                    sl = slice(j, j + self.block) if self.block < B else None
+                    s = self.sim.prints(sub, masks=sl)
+                    parts.append(torch.where(s, self.gain[sl or slice(None)], 0.0).sum(dim=(2, 3)))
+                out.append(self.base[None] + torch.cat(parts, dim=1))
         return torch.cat(out)
 
     def hard(self, theta) -> np.ndarray:
@@ -539,6 +546,8 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
     if boot_rows:
         write_tsv(out_dir / "bootstrap.tsv", boot_rows, ["replicate", "prints", "objective"] + space.names)
     if s["residual_maps"]:
+        for old in (out_dir / "residuals").glob("*.png"):  # maps of an earlier run on other prints
+            old.unlink()
         for lab, meas, sim in zip(data.labels, data.prints, sims):
             write_rgb(out_dir / "residuals" / f"{lab.replace('/', '__')}.png", residual_rgb(meas, sim))
     if s["figure"]:

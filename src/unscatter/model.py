@@ -492,28 +492,52 @@ class FixedMasks:
             new.spectra = self.spectra[:, idx].contiguous()
         return new
 
-    def dose(self, theta: Theta) -> torch.Tensor:
-        """(P, B, h, w) absorbed dose for P parameter sets (at every f-th pixel)."""
+    def dose(self, theta: Theta, masks: slice | None = None) -> torch.Tensor:
+        """(P, B, h, w) absorbed dose for P parameter sets (at every f-th pixel); ``masks``
+        restricts it to a block of the masks (smaller temporaries)."""
         if self.support_px + 1e-6 < self.model.support_px({k: v.detach().cpu() for k, v in theta.items()}):
             raise ValueError("a kernel is wider than this evaluator's padding; build it with a larger support_px")
+        sl = masks if masks is not None else slice(None)
+        M = self.masks[sl]
         if not self.fast:
-            d = self.model.dose(self.masks, theta, shape=self.full_shape)
+            d = self.model.dose(M, theta, shape=self.full_shape)
             return d[..., :: self.f, :: self.f]
         K = len(self.basis_names)
         c = torch.stack([theta[k] for k in self.basis_names], dim=1)  # (P, K)
         P = c.shape[0]
-        spec = (c @ self.spectra.reshape(K, -1)).reshape(P, *self.spectra.shape[1:])
+        if masks is None:  # sum_k c_pk spectrum_k as one matrix product
+            spec = (c @ self.spectra.reshape(K, -1)).reshape(P, *self.spectra.shape[1:])
+        else:  # a block: accumulate over k on views (no copy of the spectra)
+            S = self.spectra[:, sl]
+            spec = sum(c[:, k, None, None, None, None] * S[k][None] for k in range(K))
         spec = torch.view_as_complex(spec)
         # where the field goes negative the ReLU acts and the field is not linear in c
-        neg = (self.model.field(self.X, self.Y, theta).amin(dim=(1, 2)) < 0).nonzero().flatten()
+        neg = self._negative_field(theta)
         if neg.numel():
             sub = {k: v[neg] for k, v in theta.items()}
-            direct = self._band(torch.fft.rfft2(self.model.exposure(self.masks, sub), s=self.full_shape), self.f)
+            direct = self._band(torch.fft.rfft2(self.model.exposure(M, sub), s=self.full_shape), self.f)
             spec = spec.index_put((neg,), direct)
         return self.model.blur_spectrum(spec, theta, self.shape, self.out_hw, self.f)
 
-    def prints(self, theta: Theta, temperature: float | None = None) -> torch.Tensor:
-        return self.model.threshold.apply(self.dose(theta), theta, temperature)
+    def prints(self, theta: Theta, temperature: float | None = None, masks: slice | None = None) -> torch.Tensor:
+        return self.model.threshold.apply(self.dose(theta, masks), theta, temperature)
+
+    def _negative_field(self, theta: Theta) -> torch.Tensor:
+        """Indices of the parameter sets whose field is negative somewhere on the grid.
+
+        The field is smooth: a 65 x 65 lattice (edges included) screens it, and only sets
+        that come near zero there are checked on every pixel.
+        """
+        with torch.no_grad():
+            th = {k: v.detach() for k, v in theta.items()}
+            ix = torch.linspace(0, self.W - 1, min(self.W, 65), device=self.X.device).round().long()
+            iy = torch.linspace(0, self.H - 1, min(self.H, 65), device=self.Y.device).round().long()
+            coarse = self.model.field(self.X[:, ix], self.Y[iy], th).amin(dim=(1, 2))
+            near = (coarse < 0.1 * coarse.abs().max().clamp_min(1e-6)).nonzero().flatten()
+            if not near.numel():
+                return near
+            sub = {k: v[near] for k, v in th.items()}
+            return near[self.model.field(self.X, self.Y, sub).amin(dim=(1, 2)) < 0]
 
 
 # --------------------------------------------------------------------- named models
