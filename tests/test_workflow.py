@@ -138,7 +138,7 @@ def test_default_config_dry_run():
 
 def test_default_config_plans_lab_then_registration(tmp_path):
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
-    assert planned(configs=[cfg]) == [("register_prints", "batch=lab"), ("trial_masks", ""), ("virtual_lab", "batch=lab")]
+    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=lab"), ("trial_masks", ""), ("virtual_lab", "batch=lab")]
 
 
 def test_slurm_profile_dry_run(tmp_path):
@@ -147,10 +147,10 @@ def test_slurm_profile_dry_run(tmp_path):
     assert "slurm_partition=" in out
 
 
-def test_batches_source_plans_registration_only(tmp_path):
+def test_batches_source_plans_no_lab(tmp_path):
     batch = fake_batch(tmp_path, "session1")
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)])
-    assert planned(configs=[cfg]) == [("register_prints", "batch=session1")]
+    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session1")]
 
 
 def test_adding_a_batch_plans_only_that_batch(tmp_path):
@@ -159,11 +159,12 @@ def test_adding_a_batch_plans_only_that_batch(tmp_path):
     # session1 is registered already: its output is newer than its inputs and the rule's script
     (results / "prints" / "session1").mkdir(parents=True)
     cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(first), str(second)])
-    assert planned(configs=[cfg]) == [("register_prints", "batch=session2")]
+    # the new batch is registered, then everything that pools the batches is redone
+    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session2")]
     # a changed image of session1 reruns session1 too
     later = time.time() + 60
     os.utime(first / "images" / "p0.tif", (later, later))
-    assert planned(configs=[cfg]) == [("register_prints", "batch=session1"), ("register_prints", "batch=session2")]
+    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session1"), ("register_prints", "batch=session2")]
 
 
 def test_batch_without_contract_fails_clearly(tmp_path):
