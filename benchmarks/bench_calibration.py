@@ -118,7 +118,8 @@ def main():
         obj.hard(theta)  # warm up
         dt, cpu = min(timed(obj.hard, theta)[1:] for _ in range(reps))
         rates[f] = P / dt
-        print(f"   fast, every {f}{'st' if f == 1 else 'th'} pixel ({(H + f - 1) // f}x{(W + f - 1) // f} samples): "
+        nth = {1: "pixel   ", 2: "2nd pixel", 4: "4th pixel"}[f]
+        print(f"   fast, every {nth} ({(H + f - 1) // f}x{(W + f - 1) // f} samples): "
               f"{rates[f]:8.1f} evals/s  ({1000 / rates[f]:.1f} ms/eval, CPU {1000 * cpu / P:.1f} ms/eval)")
     n_plain = 2 if args.quick else 3
     one = {k: v[0] for k, v in pop.items()}

@@ -436,10 +436,15 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
 def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **settings) -> Params:
     """Calibrate ``model`` on registered prints; write params.yaml and the diagnostics.
 
+    ``prints_dirs``: registration outputs (``<id>.png``, ``qc.tsv``, ``batch.yaml``);
+    prints with status ok or empty are used, failed ones never. ``settings`` override
+    ``DEFAULTS`` (GA size, bounds, free_c0, refinement, folds, bootstrap, ...).
+
     Writes under ``out_dir``: params.yaml, history.tsv (GA per generation), cv.tsv
     (held-out metrics per print), bootstrap.tsv (refit parameters), residuals/<id>.png
     (red: measured but not simulated, blue: simulated but not measured) and fit.png.
-    Returns the fitted Params.
+    Returns the fitted Params. Raises InputError (naming the file or folder) for bad or
+    uninformative input; a fit on a bound is flagged in params.yaml and warned about.
     """
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
@@ -551,7 +556,7 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
         for lab, meas, sim in zip(data.labels, data.prints, sims):
             write_rgb(out_dir / "residuals" / f"{lab.replace('/', '__')}.png", residual_rgb(meas, sim))
     if s["figure"]:
-        fit_figure(out_dir / "fit.png", data, sims, per_print)
+        fit_figure(out_dir / "fit.png", data, sims, per_print, model=model)
     log.info("calibration done in %.1f s (fit %.1f s, cv %.1f s, bootstrap %.1f s)", time.perf_counter() - t_start, t_fit, t_cv, t_boot)
     from .model import load_params
 
@@ -650,7 +655,7 @@ def residual_rgb(measured: np.ndarray, simulated: np.ndarray) -> np.ndarray:
     return rgb
 
 
-def fit_figure(path, data: PrintSet, sims: np.ndarray, per_print: list, n: int = 6) -> None:
+def fit_figure(path, data: PrintSet, sims: np.ndarray, per_print: list, n: int = 6, model: str = "eq1") -> None:
     """Rows of prints: mask, measured, simulated, residual (matplotlib, Agg)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -661,7 +666,7 @@ def fit_figure(path, data: PrintSet, sims: np.ndarray, per_print: list, n: int =
     FigureCanvasAgg(fig)
     axes = fig.subplots(len(pick), 4, squeeze=False)
     for row, j in zip(axes, pick):
-        panels = [(data.masks[j], "mask", "gray"), (data.prints[j], "measured print", "gray"), (sims[j], "simulated (Eq. 1)", "gray"),
+        panels = [(data.masks[j], "mask", "gray"), (data.prints[j], "measured print", "gray"), (sims[j], f"simulated ({model})", "gray"),
                   (residual_rgb(data.prints[j], sims[j]), f"residual, IoU {per_print[j]['iou']:.3f}", None)]
         for ax, (img, title, cmap) in zip(row, panels):
             ax.imshow(img, cmap=cmap, vmin=0 if cmap else None, vmax=(255 if img.dtype == np.uint8 else 1) if cmap else None)
