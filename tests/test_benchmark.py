@@ -1,0 +1,227 @@
+"""Benchmark: print ids, the print job for a real printer, scoring on the simulator as
+printer, scoring a registered batch, and the virtual lab through registration."""
+
+import math
+
+import numpy as np
+import pytest
+
+from unscatter import metrics
+from unscatter.benchmark import (
+    COLUMNS,
+    IDENTICAL,
+    IDENTICAL_DOSES,
+    benchmark_masks,
+    identical_mask,
+    parse_print_id,
+    print_id,
+    run_benchmark,
+    score_measured,
+    score_prints,
+    simulator_printer,
+    write_print_job,
+)
+from unscatter.compensation import compensate_designs
+from unscatter.io import open_batch, read_batch_meta, read_mask, read_tsv, write_png, write_tsv, write_yaml
+from unscatter.model import default_params, save_params, simulate
+
+PX_UM = 2.96
+VALUES = dict(c1=-0.06, c2=-0.04, c3=0.03, c4=-0.02, sigma_px=5.0, T=0.5)
+SHORT = dict(schedule=((4, 30), (2, 15), (1, 5)), threads=1)  # a quicker ILT: these tests are about the benchmark
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    params = default_params(pixel_size_um=PX_UM).with_values(**VALUES)
+    save_params(root / "params.yaml", params)
+    designs = root / "designs"
+    for name in ("cross", "star"):
+        write_png(designs / f"{name}.png", read_mask(f"data/designs/{name}.png"))
+    compensate_designs(designs, root / "ilt", "ilt", params_path=root / "params.yaml", frames=False, **SHORT)
+    return root, params, designs
+
+
+@pytest.fixture(scope="module")
+def simulated(setup):
+    root, params, designs = setup
+    rows = run_benchmark(designs, {"ilt": root / "ilt"}, root / "out", PX_UM, simulator_printer(params))
+    return root / "out", rows
+
+
+# ------------------------------------------------------------------------------ ids
+
+
+@pytest.mark.parametrize("method,dose,exposure", [("ilt", 1.0, 1.0), ("nn+ilt", 1.0, 1.1), ("nn", 1.0, 0.9),
+                                                  (IDENTICAL, 0.75, 1.0), (IDENTICAL, 0.5, 1.1), ("ilt_robust", 1.0, 1.0)])
+def test_print_ids_parse_back(method, dose, exposure):
+    pid = print_id("rings_widths", method, dose, exposure)
+    q = parse_print_id(pid)
+    assert (q["design"], q["method"], q["mask_dose"], q["exposure"]) == ("rings_widths", method, dose, exposure)
+
+
+def test_print_id_examples_and_bad_ids():
+    assert print_id("star", IDENTICAL, 0.7) == "star__identical_70"
+    assert print_id("star", "ilt", 1.0, 0.9) == "star__ilt__x090"
+    for bad in ("star", "star__", "__ilt", "a__b__c__d", "star__ilt__x9", "star__i lt"):
+        with pytest.raises(ValueError):
+            parse_print_id(bad)
+    with pytest.raises(ValueError):
+        print_id("my__design", "ilt")
+    with pytest.raises(ValueError):
+        print_id("star", "identical_fake")
+
+
+def test_identical_masks_scale_the_grey_level():
+    d = np.zeros((8, 8), bool)
+    d[2:5, 2:6] = True
+    for dose, grey in zip(IDENTICAL_DOSES, (255, 191, 178, 128)):
+        m = identical_mask(d, dose)
+        assert m.dtype == np.uint8 and set(np.unique(m)) == {0, grey} and np.array_equal(m > 0, d)
+
+
+# -------------------------------------------------------------------------- print job
+
+
+def test_print_job_is_a_batch_without_images(setup, tmp_path):
+    root, _, designs = setup
+    job = tmp_path / "print_job"
+    rows = write_print_job({"ilt": root / "ilt", "nn+ilt": root / "ilt"}, designs, job)
+    n = 2 * (2 + len(IDENTICAL_DOSES)) * 3  # designs x (methods + identical doses) x exposures
+    assert len(rows) == n and len(list((job / "masks").glob("*.png"))) == n
+    meta = read_batch_meta(job / "batch.yaml")  # the contract's fields, valid as written
+    assert meta.pixel_size_um == PX_UM
+    assert "images/<same id>" in (job / "README.txt").read_text()
+    assert "data/prints/<name>/" in (job / "README.txt").read_text()
+    seen = set()
+    for r in read_tsv(job / "job.tsv"):
+        q = parse_print_id(r["id"])
+        assert (q["design"], q["method"], q["mask_dose"], q["exposure"]) == (
+            r["design"], r["method"], float(r["mask_dose"]), float(r["exposure"]))
+        seen.add((q["design"], q["method"], q["mask_dose"], q["exposure"]))
+        m = read_mask(job / "masks" / f"{r['id']}.png")
+        if q["method"] == IDENTICAL:
+            assert np.array_equal(m, identical_mask(read_mask(designs / f"{q['design']}.png"), q["mask_dose"]))
+        else:
+            assert np.array_equal(m, read_mask(root / "ilt" / f"{q['design']}.png"))
+    assert len(seen) == n
+    assert float(read_tsv(job / "job.tsv")[0]["exposure_s"]) > 0
+
+
+def test_masks_must_match_the_designs(setup, tmp_path):
+    root, _, designs = setup
+    bad = tmp_path / "bad"
+    write_png(bad / "cross.png", np.zeros((100, 100), np.uint8))
+    write_png(bad / "star.png", np.zeros((512, 512), np.uint8))
+    with pytest.raises(ValueError, match="design's size"):
+        benchmark_masks(designs, {"nn": bad})
+    with pytest.raises(ValueError, match="reference"):
+        benchmark_masks(designs, {IDENTICAL: root / "ilt"})
+
+
+# ----------------------------------------------------------- the simulator as printer
+
+
+def test_benchmark_on_the_simulator_writes_every_row_and_figure(simulated):
+    out, rows = simulated
+    table = read_tsv(out / "metrics.tsv")
+    assert list(table[0]) == COLUMNS
+    keys = {(r["design"], r["method"], float(r["mask_dose"])) for r in table}
+    expect = {(d, "ilt", 1.0) for d in ("cross", "star")} | {(d, IDENTICAL, x) for d in ("cross", "star") for x in IDENTICAL_DOSES}
+    assert keys == expect and len(table) == len(expect)
+    assert all(r["status"] == "ok" for r in table)
+    for name in ("fig6_prints.png", "fig5_masks.png", "metrics_bars.png"):
+        assert (out / name).stat().st_size > 10000, name
+    assert [r["variant"] for r in read_tsv(out / "summary.tsv")] == ["ilt"] + [f"identical {round(100 * x)} %" for x in IDENTICAL_DOSES]
+
+
+def test_compensated_masks_beat_identical_masks(simulated):
+    _, rows = simulated
+    by = {(r["design"], r["method"], r["mask_dose"]): r for r in rows}
+    for d in ("cross", "star"):
+        ilt, ident = by[(d, "ilt", 1.0)], by[(d, IDENTICAL, 1.0)]
+        assert ilt["iou"] > ident["iou"] and ilt["epe_um"] < ident["epe_um"]
+        # the plain mask prints worse as its dose is turned down (Fig. 6)
+        ious = [by[(d, IDENTICAL, x)]["iou"] for x in IDENTICAL_DOSES]
+        assert ious == sorted(ious, reverse=True)
+        assert all(r["pv_band_um"] > 0 for r in (ilt, ident))
+
+
+def test_benchmark_scores_with_the_metrics_module(setup, simulated):
+    root, params, designs = setup
+    _, rows = simulated
+    d = read_mask(designs / "star.png") != 0
+    m = identical_mask(d, 0.75)
+    p = simulate(params, m)
+    lo = simulate(params.with_values(T=0.5 / 0.9), m)
+    hi = simulate(params.with_values(T=0.5 / 1.1), m)
+    r = next(r for r in rows if r["design"] == "star" and r["mask_dose"] == 0.75)
+    assert r["iou"] == pytest.approx(metrics.iou(p, d))
+    assert r["epe_um"] == pytest.approx(metrics.epe_um(p, d, PX_UM))
+    assert r["pv_band_um"] == pytest.approx(metrics.pv_band_um(lo, hi, d, PX_UM))
+
+
+def test_a_missing_print_is_reported_not_scored(setup):
+    _, params, designs = setup
+    d = read_mask(designs / "cross.png") != 0
+    prints = {print_id("cross", IDENTICAL, 1.0, e): simulate(params.with_values(T=0.5 / e), identical_mask(d)) for e in (0.9, 1.1)}
+    prints[print_id("cross", "ilt")] = None
+    prints[print_id("cross", IDENTICAL)] = simulate(params, identical_mask(d))
+    rows = {r["method"]: r for r in score_prints(prints, designs, PX_UM)}
+    assert rows["ilt"]["status"] == "no print" and math.isnan(rows["ilt"]["iou"])
+    assert rows[IDENTICAL]["status"] == "ok" and not math.isnan(rows[IDENTICAL]["pv_band_um"])
+
+
+# ------------------------------------------------------------------ a measured batch
+
+
+def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
+    """A registration-like folder of the same prints scores the same as run_benchmark."""
+    root, params, designs = setup
+    out, rows = simulated
+    job = tmp_path / "job"
+    write_print_job({"ilt": root / "ilt"}, designs, job)
+    reg = tmp_path / "registered"
+    qc = []
+    for pid_path in sorted((job / "masks").glob("*.png")):
+        pid = pid_path.stem
+        e = parse_print_id(pid)["exposure"]
+        write_png(reg / f"{pid}.png", simulate(params.with_values(T=0.5 / e), read_mask(pid_path)))
+        qc.append(dict(id=pid, status="ok", mask=f"../job/masks/{pid}.png"))
+    write_tsv(reg / "qc.tsv", qc)
+    write_yaml(reg / "batch.yaml", dict(pixel_size_um=PX_UM))
+    measured = score_measured(reg, designs, tmp_path / "scored")
+    key = lambda r: (r["design"], r["method"], r["mask_dose"])  # noqa: E731
+    a = {key(r): r for r in rows}
+    for r in measured:
+        for k in ("iou", "pixel_error", "epe_um", "pv_band_um"):
+            assert r[k] == pytest.approx(a[key(r)][k]), (key(r), k)
+    assert (tmp_path / "scored" / "fig5_masks.png").is_file()
+
+
+# ----------------------------------------------------------------- the virtual lab
+
+
+@pytest.mark.slow
+def test_virtual_lab_prints_go_through_registration(setup, tmp_path):
+    from unscatter.benchmark import print_on_virtual_lab
+
+    root, _, designs = setup
+    one = tmp_path / "designs"
+    write_png(one / "cross.png", read_mask(designs / "cross.png"))
+    job = tmp_path / "job"
+    write_print_job({"ilt": root / "ilt"}, one, job, doses=(1.0, 0.5))
+    prints = print_on_virtual_lab(job / "masks", tmp_path / "work", seed=3)
+    batch = open_batch(tmp_path / "work" / "batch")  # one batch in the data contract, all exposures
+    assert set(batch.ids) == {p.stem for p in (job / "masks").glob("*.png")}
+    assert read_batch_meta(tmp_path / "work" / "batch" / "batch.yaml").exposure_s == 20
+    qc = {r["id"]: r["status"] for r in read_tsv(prints / "qc.tsv")}
+    assert set(qc) == set(batch.ids) and set(qc.values()) <= {"ok", "empty"}
+    # more exposure, more polymer
+    solid = {e: read_mask(prints / f"{print_id('cross', 'ilt', 1.0, e)}.png").mean() for e in (0.9, 1.0, 1.1)}
+    assert solid[0.9] < solid[1.0] < solid[1.1]
+    rows = score_measured(prints, one, tmp_path / "scored")
+    assert {(r["method"], r["mask_dose"]) for r in rows} == {("ilt", 1.0), (IDENTICAL, 1.0), (IDENTICAL, 0.5)}
+    by = {(r["method"], r["mask_dose"]): r for r in rows}
+    assert by[(IDENTICAL, 1.0)]["iou"] > by[(IDENTICAL, 0.5)]["iou"]
+    assert (tmp_path / "scored" / "metrics.tsv").is_file()
