@@ -158,5 +158,117 @@ def simulate_cmd(params, mask_dir, out_dir, device):
     paths = simulate_dir(params, mask_dir, out_dir, device=device)
     click.echo(f"simulated {len(paths)} prints -> {out_dir}")
 
+
+# ------------------------------------------------------- augment, train, compensate
+def _passive_threads():
+    """Idle OpenMP threads sleep instead of spinning: on a machine shared with other jobs,
+    spinning torch threads slow training many times over. Effective before torch loads."""
+    import os
+
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+def _families(values):
+    """--family NAME or NAME=WEIGHT, repeated -> None (all), or {name: weight}."""
+    if not values:
+        return None
+    out = {}
+    for v in values:
+        name, _, w = v.partition("=")
+        try:
+            out[name] = float(w) if w else 1.0
+        except ValueError:
+            raise click.BadParameter(f"{v!r}: the weight must be a number", param_hint="--family") from None
+    return out
+
+
+@main.command("augment")
+@click.argument("model_params", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("out_zarr", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--count", default=4000, show_default=True, help="Mask/print pairs (paper: 4,000).")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--size", default=512, show_default=True, help="Mask side in DMD pixels (paper: 512).")
+@click.option("--family", "families", multiple=True, metavar="NAME[=WEIGHT]",
+              help="Augmentation family and its share (repeat; default: all seven, equal shares).")
+@click.option("--test-fraction", default=0.1, show_default=True, help="Held-out share (paper: 400 of 4,000).")
+@click.option("--workers", type=int, default=None, help="Parallel workers (default: one per CPU core).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def augment_cmd(model_params, out_zarr, count, seed, size, families, test_fraction, workers, progress):
+    """Augmentation masks and their simulated prints under MODEL_PARAMS (params.yaml) -> OUT_ZARR."""
+    _passive_threads()
+    from .augment import augment
+
+    try:
+        s = augment(model_params, out_zarr, count=count, seed=seed, families=_families(families), size=size,
+                    test_fraction=test_fraction, workers=workers, progress=progress)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise click.UsageError(str(exc)) from None
+    click.echo(f"wrote {s['count']} pairs ({size}x{size}; {s['n_train']} train / {s['n_test']} test) in "
+               f"{s['elapsed_s']:.1f} s -> {out_zarr}")
+
+
+@main.command("train")
+@click.argument("dataset", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--preset", type=click.Choice(["default", "paper", "ci"]), default="default", show_default=True,
+              help="paper: the paper's sizes (for a GPU); default: two CPU cores; ci: seconds.")
+@click.option("--epochs", type=int, help="Epochs (paper: 200).")
+@click.option("--width", type=int, help="Base channels of the U-Nets (paper: 64).")
+@click.option("--scale", type=int, help="Train on the field area-downsampled by this factor.")
+@click.option("--crop", type=int, help="Train on random crops of this side (at the training scale).")
+@click.option("--coords/--no-coords", default=None, help="X, Y coordinate channels as extra inputs.")
+@click.option("--lr", type=float, help="Adam learning rate (paper: 1e-5).")
+@click.option("--batch", type=int, help="Batch size (paper: 10).")
+@click.option("--seed", type=int)
+@click.option("--max-train", type=int, help="Use at most this many training pairs.")
+@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+@click.option("--threads", type=int, default=None, help="torch CPU threads.")
+@click.option("--resume/--no-resume", default=True, show_default=True, help="Continue from OUT_DIR/checkpoint.pt.")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, batch, seed, max_train, device,
+              threads, resume, progress):
+    """Train the master and slave U-Nets on DATASET (an augmentation Zarr) into OUT_DIR.
+
+    The loss is Eq. 2 of the paper; OUT_DIR gets master.pt, slave.pt, checkpoint.pt,
+    log.tsv, curves.png and eval.tsv.
+    """
+    _passive_threads()
+    from .training import train
+
+    settings = dict(epochs=epochs, width=width, scale=scale, crop=crop, coords=coords, lr=lr, batch=batch, seed=seed,
+                    max_train=max_train)
+    try:
+        r = train(dataset, out_dir, preset=preset, settings={k: v for k, v in settings.items() if v is not None},
+                  resume=resume, device=device, threads=threads, progress=progress)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise click.UsageError(str(exc)) from None
+    ev = {row["method"]: row for row in r["eval"] if row["family"] == "all"}
+    msg = ", ".join(f"{m} IoU {ev[m]['iou']:.4f}" for m in ("slave", "master", "identity") if m in ev)
+    click.echo(f"trained {r['epochs']} epochs ({sum(r['seconds_per_epoch']):.0f} s this run): {msg} -> {out_dir}")
+
+
+@main.command("compensate")
+@click.argument("design", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--model", "model_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="A training folder (master.pt) from `unscatter train`.")
+@click.option("--method", type=click.Choice(["nn", "ilt", "nn+ilt"]), default="nn", show_default=True)
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Mask PNG to write.")
+@click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
+def compensate_cmd(design, model_dir, method, output, device):
+    """The grayscale mask that prints DESIGN (PNG, nonzero = solid) despite the scattering."""
+    if method != "nn":
+        raise click.ClickException(f"method {method!r} is not implemented yet; use --method nn")
+    _passive_threads()
+    from .io import read_mask, write_png
+    from .training import compensate_nn
+
+    mask = compensate_nn(read_mask(design), model_dir, device=device)
+    write_png(output, mask)
+    click.echo(f"{method} mask for {design.name} -> {output}")
+
 if __name__ == "__main__":  # pragma: no cover
     main()
