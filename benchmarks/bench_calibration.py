@@ -121,6 +121,13 @@ def main():
         nth = {1: "pixel   ", 2: "2nd pixel", 4: "4th pixel"}[f]
         print(f"   fast, every {nth} ({(H + f - 1) // f}x{(W + f - 1) // f} samples): "
               f"{rates[f]:8.1f} evals/s  ({1000 / rates[f]:.1f} ms/eval, CPU {1000 * cpu / P:.1f} ms/eval)")
+    obj = Objective.build(sim, data.prints, 4)
+    before = torch.get_num_threads()
+    for n in sorted({1, before}):
+        torch.set_num_threads(n)
+        dt, _ = min(timed(obj.hard, theta)[1:] for _ in range(reps))
+        print(f"   fast, every 4th pixel, {n} thread{'s' if n > 1 else ''}: {P / dt:8.1f} evals/s")
+    torch.set_num_threads(before)
     n_plain = 2 if args.quick else 3
     one = {k: v[0] for k, v in pop.items()}
     dt, cpu = min(timed(plain_objective, data.masks, data.prints, one)[1:] for _ in range(n_plain))

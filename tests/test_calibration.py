@@ -271,16 +271,20 @@ def test_several_prints_dirs_are_pooled(lab, tmp_path):
 def test_cli_calibrate_and_simulate(lab, tmp_path):
     from click.testing import CliRunner
 
+    import torch
+
     from unscatter.cli import main
 
+    before = torch.get_num_threads()
     r = CliRunner().invoke(main, ["calibrate", str(lab.dir8), "--out", str(tmp_path / "cal"), "--seed", "1",
                                   "--population", "12", "--generations", "3", "--folds", "2", "--bootstrap", "2",
-                                  "--bounds", "sigma_px=0.5,2"])
+                                  "--bounds", "sigma_px=0.5,2", "--threads", "1"])
     assert r.exit_code == 0, r.output
     assert "calibrated eq1 on 8 prints" in r.output and "held-out IoU" in r.output
     assert "warning: sigma_px" in r.output  # the fit sits on the upper bound given
     p = load_params(tmp_path / "cal" / "params.yaml")
     assert p.bounds["sigma_px"] == (0.5, 2.0) and p.info["fit"]["seed"] == 1
+    assert torch.get_num_threads() == before  # the run's thread count does not leak
     r = CliRunner().invoke(main, ["simulate", str(tmp_path / "cal" / "params.yaml"), str(lab.root / "masks"), str(tmp_path / "sim")])
     assert r.exit_code == 0, r.output
     assert len(list((tmp_path / "sim").glob("*.png"))) == 32

@@ -74,6 +74,7 @@ DEFAULTS = dict(
     figure=True,
     progress=True,
     device=None,
+    threads=None,  # torch intra-op threads for the run (None: as configured); 1 is faster on a busy machine
 )
 
 OBJECTIVE = (
@@ -450,6 +451,17 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
     if unknown:
         raise TypeError(f"unknown calibration setting(s) {unknown}; known: {sorted(DEFAULTS)}")
     s = {**DEFAULTS, **settings}
+    if s["threads"]:
+        before = torch.get_num_threads()
+        torch.set_num_threads(int(s["threads"]))
+        try:
+            return _calibrate(prints_dirs, out_dir, model, seed, s)
+        finally:
+            torch.set_num_threads(before)
+    return _calibrate(prints_dirs, out_dir, model, seed, s)
+
+
+def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     out_dir = Path(out_dir)
     t_start = time.perf_counter()
     device = torch.device(s["device"]) if s["device"] else default_device()
@@ -538,7 +550,7 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
                                **{f"{k}_every": v for k, v in fit.factors.items()}),
                  population=s["population"], generations=s["generations"], on_bound=sorted(on_bound),
                  seconds=round(t_fit, 2),
-                 settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("progress", "device")}),
+                 settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("progress", "device", "threads")}),
         validation=dict(cv_summary, seconds=round(t_cv, 2)),
         uncertainty=dict({k: v for k, v in unc.items() if k != "parameters"}, seconds=round(t_boot, 2)),
         warnings=run_warnings,

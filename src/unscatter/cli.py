@@ -118,7 +118,8 @@ def _bounds(ctx, param, value):
 @click.option("--folds", default=4, show_default=True, help="k-fold cross-validation over prints (0: none).")
 @click.option("--bootstrap", default=20, show_default=True, help="Bootstrap replicates over prints (0: none).")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
-def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device):
+@click.option("--threads", type=int, default=None, help="torch CPU threads (default: torch's; 1 is faster on a busy machine).")
+def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device, threads):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
 
@@ -135,7 +136,8 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
     with warnings.catch_warnings():  # the flags are echoed below, once, without a source line
         warnings.simplefilter("ignore", UserWarning)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
-                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device)
+                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device,
+                      threads=threads)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""
@@ -253,22 +255,43 @@ def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, 
 
 @main.command("compensate")
 @click.argument("design", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--model", "model_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
-              help="A training folder (master.pt) from `unscatter train`.")
+@click.option("--model", "model_dir", type=click.Path(path_type=Path), required=True,
+              help="nn, nn+ilt: a training folder (master.pt) from `unscatter train`; "
+                   "ilt: the calibrated params.yaml or its calibration folder.")
+@click.option("--params", "params_path", type=click.Path(path_type=Path),
+              help="nn+ilt: the calibrated params.yaml (or its folder) for the ILT refinement.")
 @click.option("--method", type=click.Choice(["nn", "ilt", "nn+ilt"]), default="nn", show_default=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Mask PNG to write.")
+@click.option("--frame", "frame_png", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the full 2560x1600 DMD frame with the mask in it (all other mirrors off).")
+@click.option("--offset", type=int, nargs=2, default=None, metavar="ROW COL",
+              help="Top-left mirror of the mask in the DMD frame (default: centred).")
+@click.option("--robust", is_flag=True, help="ILT: optimise for 90, 100 and 110 % of the nominal dose at once.")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
-def compensate_cmd(design, model_dir, method, output, device):
+def compensate_cmd(design, model_dir, params_path, method, output, frame_png, offset, robust, device):
     """The grayscale mask that prints DESIGN (PNG, nonzero = solid) despite the scattering."""
-    if method != "nn":
-        raise click.ClickException(f"method {method!r} is not implemented yet; use --method nn")
+    if method == "ilt" and params_path is not None:
+        raise click.UsageError("for --method ilt, --model is the params.yaml; --params is for nn+ilt")
+    if method == "nn+ilt" and params_path is None:
+        raise click.UsageError("--method nn+ilt refines the network's mask with ILT: give --params (params.yaml)")
+    if method == "nn" and robust:
+        raise click.UsageError("--robust is an ILT setting (use --method ilt or nn+ilt)")
     _passive_threads()
-    from .io import read_mask, write_png
-    from .training import compensate_nn
+    from .compensation import compensate, write_mask_and_frame
+    from .io import read_mask
 
-    mask = compensate_nn(read_mask(design), model_dir, device=device)
-    write_png(output, mask)
-    click.echo(f"{method} mask for {design.name} -> {output}")
+    design_mask = read_mask(design)
+    settings = dict(device=device) if method == "nn" else dict(device=device, robust=robust)
+    try:
+        mask = compensate(design_mask, method, params_path=model_dir if method == "ilt" else params_path,
+                          train_dir=None if method == "ilt" else model_dir, **settings)
+        write_mask_and_frame(mask, output, frame_png, offset=offset)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise click.UsageError(str(exc)) from None
+    click.echo(f"{method} mask for {design.name} -> {output}" + (f" (DMD frame -> {frame_png})" if frame_png else ""))
+
 
 if __name__ == "__main__":  # pragma: no cover
     main()
