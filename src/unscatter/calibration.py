@@ -74,7 +74,10 @@ DEFAULTS = dict(
     figure=True,
     progress=True,
     device=None,
-    threads=None,  # torch intra-op threads for the run (None: as configured); 1 is faster on a busy machine
+    # torch CPU threads for the run (None: as configured). The tensors are small: with 2
+    # threads on 2 shared cores OpenMP spin-waits, measured 3.5x slower than 1 thread on a
+    # busy machine. Results depend (slightly) on the thread count: part of the settings.
+    threads=1,
 )
 
 OBJECTIVE = (
@@ -550,7 +553,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
                                **{f"{k}_every": v for k, v in fit.factors.items()}),
                  population=s["population"], generations=s["generations"], on_bound=sorted(on_bound),
                  seconds=round(t_fit, 2),
-                 settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("progress", "device", "threads")}),
+                 settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("progress", "device")}),
         validation=dict(cv_summary, seconds=round(t_cv, 2)),
         uncertainty=dict({k: v for k, v in unc.items() if k != "parameters"}, seconds=round(t_boot, 2)),
         warnings=run_warnings,

@@ -118,7 +118,7 @@ def _bounds(ctx, param, value):
 @click.option("--folds", default=4, show_default=True, help="k-fold cross-validation over prints (0: none).")
 @click.option("--bootstrap", default=20, show_default=True, help="Bootstrap replicates over prints (0: none).")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
-@click.option("--threads", type=int, default=None, help="torch CPU threads (default: torch's; 1 is faster on a busy machine).")
+@click.option("--threads", type=int, default=None, help="torch CPU threads (default 1: fastest when cores are shared).")
 def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device, threads):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
@@ -135,9 +135,9 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
 
     with warnings.catch_warnings():  # the flags are echoed below, once, without a source line
         warnings.simplefilter("ignore", UserWarning)
+        more = {} if threads is None else dict(threads=threads)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
-                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device,
-                      threads=threads)
+                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device, **more)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""
