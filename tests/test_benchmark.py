@@ -89,6 +89,7 @@ def test_print_job_is_a_batch_without_images(setup, tmp_path):
     rows = write_print_job({"ilt": root / "ilt", "nn+ilt": root / "ilt"}, designs, job)
     n = 2 * (2 + len(IDENTICAL_DOSES)) * 3  # designs x (methods + identical doses) x exposures
     assert len(rows) == n and len(list((job / "masks").glob("*.png"))) == n
+    assert (job / "images").is_dir() and not any((job / "images").iterdir())
     meta = read_batch_meta(job / "batch.yaml")  # the contract's fields, valid as written
     assert meta.pixel_size_um == PX_UM
     assert "images/<same id>" in (job / "README.txt").read_text()

@@ -421,6 +421,7 @@ def write_print_job(masks_by_method: dict, designs, out_dir, pv_band: bool = Tru
                          exposure_s=float(meta["exposure_s"]) * q["exposure"]))
     write_yaml(out_dir / "batch.yaml", meta)
     write_tsv(out_dir / "job.tsv", rows)
+    (out_dir / "images").mkdir(exist_ok=True)  # where the microscope images go
     methods = ", ".join(list(masks_by_method) + [label(IDENTICAL, d) for d in doses])
     e0 = float(meta["exposure_s"])
     (out_dir / "README.txt").write_text(README.format(
