@@ -93,7 +93,10 @@ def main():
         truth, dt, _ = timed(lab_prints, pdir)
         print(f"virtual lab: 32 trial prints at 512x512 in {dt:.1f} s; true Eq. 1 parameters: "
               + ", ".join(f"{k}={v:.4g}" for k, v in truth.items()))
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, {os.cpu_count()} CPUs; wall times on a shared machine vary")
+    default_threads = torch.get_num_threads()
+    torch.set_num_threads(DEFAULTS["threads"] or default_threads)  # as calibrate() runs
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} thread(s) (calibration default; torch's: {default_threads}), "
+          f"{os.cpu_count()} CPUs; wall times on a shared machine vary")
 
     data = load_prints([pdir])
     B, H, W = data.masks.shape
@@ -123,7 +126,7 @@ def main():
               f"{rates[f]:8.1f} evals/s  ({1000 / rates[f]:.1f} ms/eval, CPU {1000 * cpu / P:.1f} ms/eval)")
     obj = Objective.build(sim, data.prints, 4)
     before = torch.get_num_threads()
-    for n in sorted({1, before}):
+    for n in sorted({1, default_threads}):
         torch.set_num_threads(n)
         dt, _ = min(timed(obj.hard, theta)[1:] for _ in range(reps))
         print(f"   fast, every 4th pixel, {n} thread{'s' if n > 1 else ''}: {P / dt:8.1f} evals/s")
