@@ -46,7 +46,8 @@ DMD_FRAME = (1600, 2560)
 
 # ILT settings. Timings and the choice of these numbers: benchmarks/bench_compensation.py.
 ILT_DEFAULTS = dict(
-    # (grid pixel in design pixels, Adam steps), coarse to fine; the last stage must be 1
+    # (grid pixel in design pixels, Adam steps), coarse to fine; the last stage must be 1.
+    # ~0.4 s per 512 x 512 design on one core; longer schedules gain < 1e-4 IoU (the sweep).
     schedule=((4, 60), (2, 40), (1, 20)),
     lr=0.25,  # Adam step on the mask's logits
     temperature=(0.3, 0.03),  # smooth threshold's width as a fraction of T: start, end (geometric)
@@ -63,7 +64,7 @@ ILT_DEFAULTS = dict(
     device=None,  # torch device (None: cuda if available, else cpu)
 )
 
-# nn+ilt: the network's mask is already close, so a short, cooler refinement.
+# nn+ilt: the network's mask is already close, so a short, cooler refinement (~0.17 s).
 NN_ILT_DEFAULTS = dict(ILT_DEFAULTS, schedule=((2, 16), (1, 8)), temperature=(0.1, 0.03), lr=0.2)
 
 
