@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 from unscatter.augment import augment
 from unscatter.io import read_mask, read_tsv, write_png
-from unscatter.model import default_params, save_params
+from unscatter.model import default_params, design_coords, save_params
 from unscatter.training import (
     EVAL_COLUMNS,
     LOG_COLUMNS,
@@ -24,7 +24,6 @@ from unscatter.training import (
     sparsity,
     train,
 )
-from unscatter.model import design_coords
 
 # one torch thread: the nets are tiny, and a busy machine makes spinning threads slow
 FAST = dict(threads=1, progress=False)

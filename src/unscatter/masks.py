@@ -1,4 +1,4 @@
-"""Mask families: the paper's trial masks (and, later, the augmentation families).
+"""Mask families: the paper's trial masks and its augmentation masks.
 
 Guan et al. 2022, 'Trial data acquisition': 32 masks of three randomized families:
 random grayscale checkerboards, randomly positioned and sized rectangles, and randomly
