@@ -32,7 +32,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from unscatter import metrics  # noqa: E402
-from unscatter.benchmark import IDENTICAL, run_benchmark, simulator_printer, virtual_lab_printer  # noqa: E402
+from unscatter.benchmark import IDENTICAL, run_benchmark, simulator_printer  # noqa: E402
+from unscatter.lab.jobs import virtual_lab_printer  # noqa: E402
 from unscatter.compensation import ILT_DEFAULTS, NN_ILT_DEFAULTS, compensate, load_printer, optimise_mask  # noqa: E402
 from unscatter.io import list_pngs, read_mask, write_png, write_tsv  # noqa: E402
 from unscatter.model import default_params, save_params, simulate  # noqa: E402

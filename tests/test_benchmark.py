@@ -205,7 +205,7 @@ def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
 
 @pytest.mark.slow
 def test_virtual_lab_prints_go_through_registration(setup, tmp_path):
-    from unscatter.benchmark import print_on_virtual_lab
+    from unscatter.lab.jobs import print_on_virtual_lab
 
     root, _, designs = setup
     one = tmp_path / "designs"

@@ -4,6 +4,7 @@ import ast
 from pathlib import Path
 
 import numpy as np
+import pytest
 import tifffile
 
 from unscatter.io import open_batch, read_tsv
@@ -88,3 +89,25 @@ def test_nothing_outside_the_lab_imports_it():
                 if n.endswith(".lab") or ".lab." in n or n.startswith("unscatter.lab"):
                     # the CLI's 'lab print' command drives the lab: it is the lab's front end
                     assert py.name == "cli.py", f"{py} imports {n}"
+
+
+def test_print_job_exposures(tmp_path):
+    """A print job's job.tsv prints masks longer or shorter; bad jobs are named."""
+    from unscatter.io import InputError, read_mask, read_tsv, write_png
+    from unscatter.lab import print_batch, read_job
+
+    m = np.zeros((128, 128), np.uint8)
+    m[40:88, 40:88] = 255
+    for k in ("a", "b"):
+        write_png(tmp_path / "m" / f"{k}.png", m)
+    (tmp_path / "job.tsv").write_text("id\texposure\na\t0.8\nb\t1.25\n")
+    print_batch(tmp_path / "m", tmp_path / "batch", exposures=read_job(tmp_path / "job.tsv"), seed=1, progress=False)
+    truth = tmp_path / "batch.truth"
+    assert read_mask(truth / "prints" / "a.png").sum() < read_mask(truth / "prints" / "b.png").sum()
+    assert {r["id"]: float(r["exposure"]) for r in read_tsv(tmp_path / "batch" / "job.tsv")} == {"a": 0.8, "b": 1.25}
+    (tmp_path / "bad.tsv").write_text("id\texposure\na\tlong\n")
+    with pytest.raises(InputError, match="bad.tsv.*not a number"):
+        read_job(tmp_path / "bad.tsv")
+    (tmp_path / "other.tsv").write_text("id\texposure\nzz\t1.1\n")
+    with pytest.raises(InputError, match="not here: zz"):
+        print_batch(tmp_path / "m", tmp_path / "batch2", exposures=read_job(tmp_path / "other.tsv"), progress=False)

@@ -23,14 +23,13 @@ variant is a method name or ``identical_<grey %>``.
 Where the prints come from:
 
 - a **printer callable** ``printer(masks, exposures) -> prints`` (``run_benchmark``):
-  the calibrated simulator (``simulator_printer``) or the virtual lab
-  (``virtual_lab_printer``);
-- a **real printer**: ``write_print_job`` writes the masks as a batch to print and image;
-  once imaged and registered like any batch, ``score_measured`` scores it.
-
-The virtual lab is touched in one place only, ``print_on_virtual_lab`` (used only when
-the data source is the virtual lab): it prints the job, images it, and hands the images
-to the same registration as every trial batch. No score ever reads the lab's truth.
+  the calibrated simulator (``simulator_printer``) or, for in-process benchmarks, the
+  virtual lab (``unscatter.lab.jobs.virtual_lab_printer``, which lives in the lab: this
+  module never imports the lab);
+- a **printer through files** (a real one, or the virtual lab in the workflow):
+  ``write_print_job`` writes the masks as a print job (masks/, batch.yaml, job.tsv with
+  each mask's exposure); once printed, imaged and registered like any batch,
+  ``score_measured`` scores it. No score ever reads the lab's truth.
 """
 
 from __future__ import annotations
@@ -197,84 +196,6 @@ def simulator_printer(params) -> Printer:
 
 def exposure_token(exposure: float) -> str:
     return f"x{int(round(100 * exposure)):03d}"
-
-
-def print_on_virtual_lab(masks_dir, work_dir, lab_config=None, seed=None, progress: bool = False) -> Path:
-    """Print and image a folder of benchmark masks on the virtual lab; register them.
-
-    The only place the benchmark touches the virtual lab, and only when the data source
-    is the virtual lab. Masks whose id ends in ``__x090`` / ``__x110`` are printed at 90 /
-    110 % of the nominal exposure (the lab has no exposure time; the same absorbed dose
-    change is played by dividing its cure doses by the exposure factor, and batch.yaml
-    reports the longer or shorter exposure). The images of all exposures form one batch,
-    registered and thresholded by ``unscatter.imaging.register_batch`` exactly as the
-    trial prints are (one threshold for the batch); the lab's truth stays in
-    ``work_dir/truth`` and is never read here. Returns the registered prints' folder.
-    """
-    from . import lab
-    from .imaging import register_batch
-
-    masks_dir, work_dir = Path(masks_dir), Path(work_dir)
-    files = list_pngs(masks_dir)
-    if not files:
-        raise InputError(masks_dir, "no masks to print")
-    groups: dict = {}
-    for pid, path in files.items():
-        try:
-            e = parse_print_id(pid)["exposure"]
-        except ValueError:
-            e = 1.0
-        groups.setdefault(e, {})[pid] = path
-    for sub in ("lab_masks", "lab", "truth", "batch", "prints"):
-        if (work_dir / sub).exists():
-            shutil.rmtree(work_dir / sub)
-    cfg = lab.load_config(lab_config)
-    batch = work_dir / "batch"
-    (batch / "masks").mkdir(parents=True)
-    (batch / "images").mkdir()
-    meta = None
-    for e, group in sorted(groups.items()):
-        tok = exposure_token(e)
-        mdir = work_dir / "lab_masks" / tok
-        mdir.mkdir(parents=True)
-        for pid, path in group.items():
-            shutil.copyfile(path, mdir / f"{pid}.png")
-        cure = cfg["printer"]["cure"]
-        overrides = {"printer": {"cure": {"threshold": cure["threshold"] / e, "gel_dose": cure["gel_dose"] / e}},
-                     "batch": {"exposure_s": cfg["batch"]["exposure_s"] * e}}
-        out = work_dir / "lab" / tok
-        lab.print_batch(mdir, out, lab_config=lab_config, truth_dir=work_dir / "truth" / tok, overrides=overrides,
-                        seed=seed, progress=progress)
-        for sub in ("masks", "images"):
-            for f in (out / sub).iterdir():
-                shutil.copyfile(f, batch / sub / f.name)
-        if e == 1.0 or meta is None:
-            meta = read_yaml(out / "batch.yaml")
-            if e != 1.0:
-                meta["exposure_s"] = cfg["batch"]["exposure_s"]
-    meta["notes"] = (str(meta.get("notes", "")) + "; benchmark: ids ending __x090/__x110 printed at 90/110 % of exposure_s").lstrip("; ")
-    meta["exposure_factors"] = {exposure_token(e): e for e in sorted(groups) if e != 1.0}
-    write_yaml(batch / "batch.yaml", meta)
-    prints = work_dir / "prints"
-    register_batch(batch, prints, skip_failed=True, progress=progress)
-    return prints
-
-
-def virtual_lab_printer(work_dir, lab_config=None, seed=None, progress: bool = False) -> Printer:
-    """The virtual lab plus registration as a printer (see ``print_on_virtual_lab``)."""
-
-    def printer(masks: dict, exposures: dict) -> dict:
-        job = Path(work_dir) / "job_masks"
-        if job.exists():
-            shutil.rmtree(job)
-        for pid, m in masks.items():
-            if parse_print_id(pid)["exposure"] != exposures[pid]:
-                raise ValueError(f"{pid}: the id says exposure {parse_print_id(pid)['exposure']}, asked for {exposures[pid]}")
-            write_png(job / f"{pid}.png", m)
-        prints = print_on_virtual_lab(job, work_dir, lab_config=lab_config, seed=seed, progress=progress)
-        return read_registered(prints)
-
-    return printer
 
 
 def read_registered(prints_dir) -> dict:

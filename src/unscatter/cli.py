@@ -63,11 +63,14 @@ def lab():
 @click.option("--lab-config", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Overrides of the lab's defaults (YAML).")
 @click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path), help="Where the truth goes (default OUT_BATCH.truth).")
 @click.option("--seed", type=int, help="Lab seed (overrides the config).")
-def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed):
+@click.option("--job", "job_tsv", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="A print job's job.tsv (columns id, exposure): print each mask at that factor of the nominal exposure.")
+def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
     """Print every mask of MASK_DIR on the virtual lab; write a batch in the data contract."""
-    from .lab import print_batch
+    from .lab import print_batch, read_job
 
-    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed)
+    exposures = read_job(job_tsv) if job_tsv else None
+    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures)
     click.echo(f"printed and imaged {len(rows)} masks into {out_batch}")
 
 

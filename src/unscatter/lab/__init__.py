@@ -22,7 +22,7 @@ import yaml
 from .microscope import image_print
 from .printer import Printer, polymer_density
 
-__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch"]
+__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch", "read_job"]
 
 
 def default_config() -> dict:
@@ -52,10 +52,12 @@ def load_config(path=None, overrides: dict | None = None) -> dict:
     return cfg
 
 
-def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=None, seed=None, progress=True):
+def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=None, seed=None, progress=True,
+                exposures: dict | None = None):
     """Print every mask in MASK_DIR and image it; write a batch in the data contract.
 
-    The truth (true transforms, noise-free prints in mask coordinates, polymer density)
+    ``exposures`` (mask id -> factor of the nominal exposure, default 1) prints some masks
+    longer or shorter, as a print job's ``job.tsv`` asks (see ``read_job``). The truth (true transforms, noise-free prints in mask coordinates, polymer density)
     goes to ``truth_dir`` (default: ``<out_batch>.truth``), outside the batch.
     """
     from .run import run_batch
@@ -65,4 +67,20 @@ def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=
         cfg["seed"] = int(seed)
     out_batch = Path(out_batch)
     truth_dir = Path(truth_dir) if truth_dir else out_batch.with_name(out_batch.name + ".truth")
-    return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress)
+    return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress, exposures=exposures)
+
+
+def read_job(job_tsv) -> dict:
+    """mask id -> exposure factor from a print job's ``job.tsv`` (columns id, exposure)."""
+    from ..io import InputError, read_tsv
+
+    rows = read_tsv(job_tsv)
+    if not rows or "id" not in rows[0] or "exposure" not in rows[0]:
+        raise InputError(job_tsv, "a print job needs the columns 'id' and 'exposure'")
+    out = {}
+    for r in rows:
+        try:
+            out[r["id"]] = float(r["exposure"])
+        except (TypeError, ValueError):
+            raise InputError(job_tsv, f"exposure of {r['id']!r} is not a number: {r['exposure']!r}") from None
+    return out
