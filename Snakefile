@@ -14,6 +14,10 @@ include: "workflow/rules/masks.smk"
 include: "workflow/rules/lab.smk"
 include: "workflow/rules/registration.smk"
 include: "workflow/rules/calibration.smk"
+include: "workflow/rules/nets.smk"
+include: "workflow/rules/compensation.smk"
+include: "workflow/rules/benchmark.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

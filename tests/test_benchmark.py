@@ -226,3 +226,39 @@ def test_virtual_lab_prints_go_through_registration(setup, tmp_path):
     by = {(r["method"], r["mask_dose"]): r for r in rows}
     assert by[(IDENTICAL, 1.0)]["iou"] > by[(IDENTICAL, 0.5)]["iou"]
     assert (tmp_path / "scored" / "metrics.tsv").is_file()
+
+
+# ------------------------------------------------------------- CLI and the report
+
+
+def test_cli_benchmark_simulate_job_and_report(setup, tmp_path):
+    from click.testing import CliRunner
+
+    from unscatter.cli import main
+
+    root, _, designs = setup
+    results = tmp_path / "results"
+    run = CliRunner().invoke(main, ["benchmark", "simulate", str(designs), str(results / "benchmark" / "simulated"),
+                                    "--params", str(root / "params.yaml"), "--method", f"ilt={root / 'ilt'}", "--doses", "1,0.5"])
+    assert run.exit_code == 0, run.output
+    assert "ilt " in run.output and "identical 50 %" in run.output
+    summary = {r["variant"]: r for r in read_tsv(results / "benchmark" / "simulated" / "summary.tsv")}
+    assert float(summary["ilt"]["iou"]) > float(summary["identical 100 %"]["iou"])
+    run = CliRunner().invoke(main, ["benchmark", "job", str(designs), str(results / "benchmark" / "print_job"),
+                                    "--method", f"ilt={root / 'ilt'}", "--doses", "1"])
+    assert run.exit_code == 0, run.output
+    assert len(read_tsv(results / "benchmark" / "print_job" / "job.tsv")) == 2 * 2 * 3  # designs x masks x exposures
+    bad = CliRunner().invoke(main, ["benchmark", "job", str(designs), str(tmp_path / "j"), "--method", "ilt"])
+    assert bad.exit_code != 0 and "NAME=FOLDER" in bad.output
+    bad = CliRunner().invoke(main, ["benchmark", "job", str(designs), str(tmp_path / "j"), "--doses", "1,1.5"])
+    assert bad.exit_code != 0 and "(0, 1]" in bad.output
+
+    run = CliRunner().invoke(main, ["report", str(results)])
+    assert run.exit_code == 0, run.output
+    page = (results / "report.html").read_text()
+    # the simulated benchmark's numbers, with the file they come from
+    assert f"from {results.as_posix()}/benchmark/simulated/summary.tsv" in page
+    assert f"{float(summary['ilt']['iou']):.4g}" in page
+    assert "data:image/png;base64," in page  # figures are embedded: the page stands alone
+    # stages that did not run are named, not silently left out
+    assert "Not printed yet" in page and "No registered batches." in page

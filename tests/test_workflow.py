@@ -136,9 +136,18 @@ def test_default_config_dry_run():
     snakemake("--dry-run", "--cores", "2")
 
 
-def test_default_config_plans_lab_then_registration(tmp_path):
+# Every job after calibration, for the calibrated model eq1 and every method.
+DOWNSTREAM = [("augment", "model=eq1"), ("benchmark_job", ""), ("benchmark_simulated", ""),
+              ("compensate", "model=eq1, method=ilt"), ("compensate", "model=eq1, method=nn"),
+              ("compensate", "model=eq1, method=nn+ilt"), ("report", ""), ("train", "model=eq1")]
+
+
+def test_default_config_plans_every_stage(tmp_path):
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
-    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=lab"), ("trial_masks", ""), ("virtual_lab", "batch=lab")]
+    assert planned(configs=[cfg]) == sorted(
+        DOWNSTREAM + [("benchmark_score", ""), ("calibrate", "model=eq1"), ("register_prints", "batch=benchmark_prints"),
+                      ("register_prints", "batch=lab"), ("trial_masks", ""), ("virtual_lab", "batch=lab"),
+                      ("virtual_lab_benchmark", "")])
 
 
 def test_slurm_profile_dry_run(tmp_path):
@@ -150,7 +159,8 @@ def test_slurm_profile_dry_run(tmp_path):
 def test_batches_source_plans_no_lab(tmp_path):
     batch = fake_batch(tmp_path, "session1")
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)])
-    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session1")]
+    # no benchmark batch yet: the print job and the simulated benchmark, nothing to score
+    assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session1")])
 
 
 def test_adding_a_batch_plans_only_that_batch(tmp_path):
@@ -160,11 +170,46 @@ def test_adding_a_batch_plans_only_that_batch(tmp_path):
     (results / "prints" / "session1").mkdir(parents=True)
     cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(first), str(second)])
     # the new batch is registered, then everything that pools the batches is redone
-    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session2")]
+    assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session2")])
     # a changed image of session1 reruns session1 too
     later = time.time() + 60
     os.utime(first / "images" / "p0.tif", (later, later))
-    assert planned(configs=[cfg]) == [("calibrate", "model=eq1"), ("register_prints", "batch=session1"), ("register_prints", "batch=session2")]
+    assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session1"),
+                                                          ("register_prints", "batch=session2")])
+
+
+def fake_outputs(results: Path, batches) -> None:
+    """Every output of a run on the measured batches, newer than every input."""
+    dirs = [f"prints/{b}" for b in batches] + ["calibration/eq1", "augment/eq1.zarr", "train/eq1", "compensated/eq1/nn",
+                                               "compensated/eq1/ilt", "compensated/eq1/nn+ilt", "benchmark/print_job",
+                                               "benchmark/simulated"]
+    for d in dirs:
+        (results / d).mkdir(parents=True)
+    (results / "report.html").write_text("report")
+
+
+def test_a_printed_benchmark_job_is_scored_not_calibrated_on(tmp_path):
+    """The benchmark's print job comes back as a batch: it is registered and scored, and
+    the calibration and everything before the benchmark stay as they are."""
+    results = tmp_path / "results"
+    trial, bench = fake_batch(tmp_path, "session1"), fake_batch(tmp_path, "bench1")
+    fake_outputs(results, ["session1"])
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(trial)])
+    assert planned(configs=[cfg]) == []
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(trial)],
+                       benchmark={"batch": str(bench)})
+    assert planned(configs=[cfg]) == [("benchmark_score", ""), ("register_prints", "batch=bench1"), ("report", "")]
+    # the same batch as a calibration batch too: refused, with the reason
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(trial), str(bench)],
+                       benchmark={"batch": str(bench)})
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "never calibrated on" in proc.stdout
+
+
+def test_unknown_design_fails_clearly(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), designs={"names": ["star", "nosuch"]})
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "no nosuch (.png) in data/designs" in proc.stdout
 
 
 def test_batch_without_contract_fails_clearly(tmp_path):

@@ -296,5 +296,99 @@ def compensate_cmd(design, model_dir, params_path, method, output, frame_png, of
     click.echo(f"{method} mask for {design.name} -> {output}" + (f" (DMD frame -> {frame_png})" if frame_png else ""))
 
 
+# ------------------------------------------------------------ benchmark, report
+def _methods(values) -> dict:
+    """--method NAME=DIR, repeated -> {name: folder of <design>.png}."""
+    out = {}
+    for v in values:
+        name, sep, folder = v.partition("=")
+        if not sep or not name or not folder:
+            raise click.BadParameter(f"{v!r}: give NAME=FOLDER (a folder of <design>.png masks)", param_hint="--method")
+        out[name] = Path(folder)
+    return out
+
+
+def _summary_lines(rows) -> None:
+    from .benchmark import summarise
+
+    for s in summarise(rows):
+        click.echo(f"{s['variant']:<16} IoU {s['iou']:.3f}  pixel error {s['pixel_error']:.3f}  EPE {s['epe_um']:.1f} um  "
+                   f"PV band {s['pv_band_um']:.1f} um  ({s['designs']} designs)")
+
+
+_method_option = click.option("--method", "methods", multiple=True, metavar="NAME=FOLDER",
+                              help="Compensated masks of one method (repeat), e.g. ilt=results/compensated/eq1/ilt.")
+_doses_option = click.option("--doses", default="1,0.75,0.7,0.5", show_default=True,
+                             help="Grey levels of the identical mask (Guan et al. 2022, Fig. 6).")
+
+
+def _doses(text: str) -> tuple:
+    try:
+        d = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{text!r}: comma-separated numbers in (0, 1]", param_hint="--doses") from None
+    if not d or not all(0 < x <= 1 for x in d):
+        raise click.BadParameter(f"{text!r}: grey levels must be in (0, 1]", param_hint="--doses")
+    return d
+
+
+@main.group(cls=_Group)
+def benchmark():
+    """Compensated masks against the identical mask at several doses."""
+
+
+@benchmark.command("job")
+@click.argument("designs_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@_method_option
+@_doses_option
+def benchmark_job(designs_dir, out_dir, methods, doses):
+    """Write the print job of the benchmark (masks/, job.tsv, batch.yaml, README.txt) to OUT_DIR."""
+    from .benchmark import write_print_job
+
+    rows = write_print_job(_methods(methods), designs_dir, out_dir, doses=_doses(doses))
+    click.echo(f"print job of {len(rows)} masks -> {out_dir} (see {out_dir / 'README.txt'})")
+
+
+@benchmark.command("simulate")
+@click.argument("designs_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True,
+              help="The calibrated params.yaml (or its folder): the simulator that prints.")
+@_method_option
+@_doses_option
+def benchmark_simulate(designs_dir, out_dir, params_path, methods, doses):
+    """Score the benchmark's masks printed by the calibrated simulator."""
+    from .benchmark import run_benchmark, simulator_printer
+    from .model import load_params
+
+    params = load_params(params_path / "params.yaml" if params_path.is_dir() else params_path)
+    rows = run_benchmark(designs_dir, _methods(methods), out_dir, params.pixel_size_um or 2.96,
+                         simulator_printer(params), doses=_doses(doses))
+    _summary_lines(rows)
+
+
+@benchmark.command("score")
+@click.argument("prints_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("designs_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+def benchmark_score(prints_dir, designs_dir, out_dir):
+    """Score a registered benchmark batch (PRINTS_DIR from `unscatter register`) against the designs."""
+    from .benchmark import score_measured
+
+    _summary_lines(score_measured(prints_dir, designs_dir, out_dir))
+
+
+@main.command("report")
+@click.argument("results_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), help="Default: RESULTS_DIR/report.html.")
+def report_cmd(results_dir, output):
+    """One self-contained HTML page with every stage's figures and tables."""
+    from .report import build_report
+
+    out = build_report(results_dir, output or results_dir / "report.html")
+    click.echo(f"report -> {out}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

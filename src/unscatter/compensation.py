@@ -291,13 +291,24 @@ def write_mask_and_frame(mask, out_png, frame_png=None, frame=DMD_FRAME, offset=
 # ------------------------------------------------------------------- a folder of designs
 
 
-def compensate_designs(designs_dir, out_dir, method: str, params_path=None, train_dir=None, frames: bool = True,
-                       frame=DMD_FRAME, offset=None, **settings) -> list[dict]:
-    """Compensate every design PNG of a folder: ``out_dir/<design>.png``, the DMD frames in
-    ``out_dir/frames/<design>.png``, and ``out_dir/compensation.tsv`` (time per design)."""
+def select_designs(designs_dir, names=None) -> dict:
+    """name -> path of the design PNGs of a folder; ``names`` (if given) picks some of them."""
     designs = list_pngs(designs_dir)
     if not designs:
         raise InputError(designs_dir, "no design .png files")
+    if names:
+        missing = sorted(set(names) - set(designs))
+        if missing:
+            raise InputError(designs_dir, f"no design {', '.join(missing)} (.png) here; there are {', '.join(sorted(designs))}")
+        designs = {k: designs[k] for k in names}
+    return designs
+
+
+def compensate_designs(designs_dir, out_dir, method: str, params_path=None, train_dir=None, frames: bool = True,
+                       frame=DMD_FRAME, offset=None, names=None, **settings) -> list[dict]:
+    """Compensate every design PNG of a folder (or those in ``names``): ``out_dir/<design>.png``,
+    the DMD frames in ``out_dir/frames/<design>.png``, and ``out_dir/compensation.tsv``."""
+    designs = select_designs(designs_dir, names)
     out_dir = Path(out_dir)
     rows = []
     for name, path in designs.items():

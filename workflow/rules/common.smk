@@ -22,6 +22,19 @@ BATCH_CONTRACT = ("batch.yaml", "masks", "images")
 
 
 # ------------------------------------------------------------------------- batches
+def _batch_folder(entry, what):
+    """The folder a config entry names: a folder under data/prints/, or a path."""
+    bare = entry.rstrip(os.sep)  # "session1/" names data/prints/session1 too
+    folder = Path(bare) if os.sep in bare else Path("data/prints") / bare
+    missing = [part for part in BATCH_CONTRACT if not (folder / part).exists()]
+    if missing:
+        raise WorkflowError(
+            f"config: {what} {entry!r}: {folder} lacks {', '.join(missing)} "
+            f"(a batch holds {', '.join(BATCH_CONTRACT)}; see README.md)"
+        )
+    return folder
+
+
 def _batch_folders():
     """Batch name -> folder. The name is the {batch} wildcard of every per-batch output."""
     if config["source"] == "lab":
@@ -31,34 +44,52 @@ def _batch_folders():
         raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
     folders = {}
     for entry in config["batches"]:
-        bare = entry.rstrip(os.sep)  # "session1/" names data/prints/session1 too
-        folder = Path(bare) if os.sep in bare else Path("data/prints") / bare
+        folder = _batch_folder(entry, "batch")
         name = folder.name
         if name in folders:
             raise WorkflowError(
                 f"config: batches {folders[name]} and {folder} have the same name {name!r}; "
                 "outputs are named by the batch folder's name, so rename one folder"
             )
-        missing = [part for part in BATCH_CONTRACT if not (folder / part).exists()]
-        if missing:
-            raise WorkflowError(
-                f"config: batch {entry!r}: {folder} lacks {', '.join(missing)} "
-                f"(a batch holds {', '.join(BATCH_CONTRACT)}; see README.md)"
-            )
         folders[name] = str(folder)
     return folders
 
 
+# The batches the printer is calibrated on.
 BATCHES = _batch_folders()
+
+# The batch of the benchmark's prints (name -> folder), never calibrated on: the virtual
+# lab's print of the benchmark job, or a measured batch named by benchmark.batch.
+LAB_BENCHMARK_BATCH = "benchmark_prints"
+
+
+def _benchmark_batch():
+    if config["source"] == "lab":
+        if LAB_BENCHMARK_BATCH in BATCHES:
+            raise WorkflowError(f"config: lab.batch must not be {LAB_BENCHMARK_BATCH!r} (the benchmark's prints)")
+        return {LAB_BENCHMARK_BATCH: f"{RESULTS}/lab/{LAB_BENCHMARK_BATCH}"}
+    if not config["benchmark"]["batch"]:
+        return {}
+    folder = _batch_folder(config["benchmark"]["batch"], "benchmark.batch")
+    if folder.name in BATCHES:
+        raise WorkflowError(
+            f"config: benchmark.batch {folder} is also a calibration batch ({BATCHES[folder.name]}): "
+            "the benchmark's prints are scored, never calibrated on"
+        )
+    return {folder.name: str(folder)}
+
+
+BENCHMARK_BATCH = _benchmark_batch()
+ALL_BATCHES = {**BATCHES, **BENCHMARK_BATCH}
 
 
 wildcard_constraints:
-    batch="|".join(re.escape(name) for name in BATCHES),
+    batch="|".join(re.escape(name) for name in ALL_BATCHES),
 
 
 def batch_folder(wildcards):
     """The folder of a batch: a virtual lab output or a folder the lab handed over."""
-    return BATCHES[wildcards.batch]
+    return ALL_BATCHES[wildcards.batch]
 
 
 def batch_files(wildcards):
@@ -68,7 +99,7 @@ def batch_files(wildcards):
     """
     if config["source"] == "lab":
         return []
-    root = Path(BATCHES[wildcards.batch])
+    root = Path(ALL_BATCHES[wildcards.batch])
     files = [root / "batch.yaml"]
     for sub in ("masks", "images"):
         files += sorted(p for p in (root / sub).iterdir() if p.is_file() and not p.name.startswith("."))
@@ -115,13 +146,44 @@ def code_version(*parts):
     return digest.hexdigest()[:16]
 
 
+# ---------------------------------------------------------------------- designs
+def design_files(wildcards=None):
+    """The design PNGs as inputs, so that an added or edited design reruns what uses it."""
+    folder = Path(config["designs"]["folder"])
+    if not folder.is_dir():
+        raise WorkflowError(f"config: designs.folder {folder} is not a folder")
+    files = {p.stem: str(p) for p in sorted(folder.glob("*.png"))}
+    names = config["designs"]["names"] or list(files)
+    missing = [n for n in names if n not in files]
+    if missing:
+        raise WorkflowError(f"config: designs.names: no {', '.join(missing)} (.png) in {folder}")
+    if not names:
+        raise WorkflowError(f"config: designs.folder {folder} has no .png designs")
+    return [files[n] for n in names]
+
+
 # -------------------------------------------------------------------------- targets
 def registered_prints():
+    """The registered prints the printer is calibrated on (not the benchmark's)."""
     return expand(f"{RESULTS}/prints/{{batch}}", batch=BATCHES)
 
 
+MODEL = config["calibration"]["model"]
+
+
 def calibrated_model():
-    return f"{RESULTS}/calibration/{config['calibration']['model']}"
+    return f"{RESULTS}/calibration/{MODEL}"
+
+
+def compensated(model=MODEL):
+    return {m: f"{RESULTS}/compensated/{model}/{m}" for m in config["compensation"]["methods"]}
+
+
+def benchmark_targets():
+    out = [f"{RESULTS}/benchmark/simulated", f"{RESULTS}/benchmark/print_job"]
+    if BENCHMARK_BATCH:
+        out.append(f"{RESULTS}/benchmark/metrics.tsv")
+    return out
 
 
 def all_input(wildcards):
@@ -129,4 +191,18 @@ def all_input(wildcards):
     targets = []
     targets += registered_prints()
     targets.append(calibrated_model())
+    targets.append(f"{RESULTS}/train/{MODEL}")
+    targets += list(compensated().values())
+    targets += benchmark_targets()
+    targets.append(f"{RESULTS}/report.html")
     return targets
+
+
+# ----------------------------------------------------------------------- networks
+# Pairs each training preset is sized for (unscatter.training.PRESET_PAIRS; kept here
+# so that a dry-run need not import torch).
+PRESET_PAIRS = {"paper": 4000, "default": 1200, "ci": 40}
+
+
+def augment_count():
+    return config["augmentation"]["count"] or PRESET_PAIRS[config["training"]["preset"]]

@@ -21,6 +21,9 @@ def start(snakemake) -> logging.Logger:
     """
     for var in _THREAD_VARS:
         os.environ[var] = str(snakemake.threads)
+    # Idle OpenMP (torch) threads sleep instead of spinning: spinning threads slow a
+    # machine shared with other jobs many times over.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     # Progress bars in a log file are noise: the adapters log one line per step instead.
     os.environ.setdefault("TQDM_DISABLE", "1")
     try:  # OpenCV sizes its own pool, whatever the variables say
