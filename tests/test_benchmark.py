@@ -198,6 +198,13 @@ def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
         for k in ("iou", "pixel_error", "epe_um", "pv_band_um"):
             assert r[k] == pytest.approx(a[key(r)][k]), (key(r), k)
     assert (tmp_path / "scored" / "fig5_masks.png").is_file()
+    # a print that failed registration QC is reported as such, and not scored
+    failed = print_id("star", "ilt")
+    qc = [dict(r, status="failed") if r["id"] == failed else r for r in qc]
+    write_tsv(reg / "qc.tsv", qc)
+    again = {key(r): r for r in score_measured(reg, designs, tmp_path / "scored2", figures=False)}
+    assert again[("star", "ilt", 1.0)]["status"] == "registration failed" and math.isnan(again[("star", "ilt", 1.0)]["iou"])
+    assert again[("cross", "ilt", 1.0)]["status"] == "ok"
 
 
 # ----------------------------------------------------------------- the virtual lab

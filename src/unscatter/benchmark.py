@@ -368,6 +368,12 @@ def score_measured(registered_prints_dir, designs_dir, out_dir, pixel_size_um: f
             if path is not None and path.is_file():
                 masks[r["id"]] = read_mask(path)
     rows = score_prints(prints, designs_dir, pixel_size_um)
+    if (reg / "qc.tsv").is_file():  # a print that failed registration QC is not a print that failed
+        failed = {r["id"] for r in read_tsv(reg / "qc.tsv") if r["status"] == "failed"}
+        for row in rows:
+            if row["status"] == "no print" and print_id(row["design"], row["method"], row["mask_dose"]) in failed:
+                row["status"] = "registration failed"
+                log.warning("%s: registration failed QC; not scored", print_id(row["design"], row["method"], row["mask_dose"]))
     write_results(rows, out_dir, designs_dir, prints, masks or None, figures)
     return rows
 
