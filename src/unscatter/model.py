@@ -27,9 +27,13 @@ The model is a list of components, each contributing named parameters with bound
 - the print stage (dose -> print):          ``Threshold`` (hard, or a sigmoid with a
   temperature for gradients)
 
-Later effects (a heavy-tailed kernel term, an anisotropic kernel, a gamma dose
-response, illumination beyond quadratic, an edge offset) are new components added to
-the list; ``register_model`` names the combination. Everything that simulates a print
+- dose terms after the kernel (optional):    ``EdgeOffset``
+
+Effects beyond Eq. 1 (``EFFECTS``: heavy_tail, anisotropy, dose_nonlinearity,
+illumination_field, edge_offset) are components added to the list or replacing one;
+a model with effects is named ``"eq1+heavy_tail+edge_offset"`` (``get_model``,
+``model_with_effects``, ``extend_params``) and its params.yaml round-trips like Eq. 1's.
+``register_model`` names other combinations. Everything that simulates a print
 (calibration, augmentation, mask optimisation, benchmarks) goes through this module.
 """
 
@@ -89,7 +93,7 @@ Theta = dict  # parameter name -> tensor of shape (P,): P parameter sets at once
 class Component:
     """A piece of the printer model that contributes parameters.
 
-    ``stage`` is one of "field", "response", "kernel", "threshold".
+    ``stage`` is one of "field", "response", "kernel", "dose" (after the kernel), "threshold".
     """
 
     stage: str = ""
@@ -142,7 +146,14 @@ class DoseResponse(Component):
     stage = "response"
 
     def apply(self, M: torch.Tensor, theta: Theta) -> torch.Tensor:
+        """(B, H, W) for a response without parameters, else (P, B, H, W)."""
         raise NotImplementedError
+
+    def expansion(self):
+        """For a response with parameters: ([phi_j(M) -> (B, H, W)], a(theta) -> (P, J)) such
+        that response = sum_j a_j phi_j(M) (to float precision), or None. It lets
+        ``FixedMasks`` keep precomputed spectra."""
+        return None
 
 
 class LinearDose(DoseResponse):
@@ -229,6 +240,203 @@ class Threshold(Component):
         return torch.sigmoid((dose - T) / (temperature * T))
 
 
+class DoseTerm(Component):
+    """A change of the absorbed dose after the kernel (before the threshold), computed from
+    the blurred dose and its gradient: ``apply(dose, gy, gx, theta)``, all (P, B, H, W),
+    gradients per design pixel."""
+
+    stage = "dose"
+
+    def apply(self, dose, gy, gx, theta: Theta) -> torch.Tensor:
+        raise NotImplementedError
+
+
+# ---------------------------------------------------------------- effect components
+#
+# Each effect beyond Eq. 1 is a component (or the replacement of one) whose neutral
+# parameter values give Eq. 1 back exactly; ``EFFECTS`` below names them for the
+# residual diagnosis (unscatter.diagnosis).
+
+
+class HeavyTailKernel(KernelTerm):
+    """A second, wide scattering term: a share ``tail_fraction`` of the light is scattered
+    with the exponential kernel exp(-r / tail_length_px) (normalised), the rest with the
+    core kernel: K = (1 - f) K_core + f K_tail.
+
+    Residual signature under Eq. 1: the print depends on the mask's density over tens to
+    hundreds of um. Prints swell where the mask is dense at large radii (100-300 um) and
+    shrink in sparse neighbourhoods; small isolated features print too small and large
+    ones too big, so the residual trends with the local mask density at large radii, and
+    the print/mask spectrum ratio is lower at low frequencies than the core Gaussian's.
+    """
+
+    name = "heavy_tail"
+    params = (
+        ParamSpec("tail_fraction", 0.0, (0.0, 0.6), "share of the light", "share of the light in the wide (exponential) kernel term"),
+        ParamSpec("tail_length_px", 10.0, (2.0, 40.0), "design pixels", "decay length of the exponential kernel term"),
+    )
+    formula = "K = (1 - tail_fraction) Gauss_sigma + tail_fraction Exp_tail_length"
+
+    def weight(self, theta):
+        f = theta["tail_fraction"].clamp(0.0, 0.95)
+        return f / (1 - f)  # the core term has weight 1: K = (1 - f) core + f tail
+
+    def transfer(self, fy, fx, theta):
+        lam = theta["tail_length_px"].clamp_min(0.1)[:, None, None]
+        f2 = fy[None, :, None] ** 2 + fx[None, None, :] ** 2
+        return (1 + (2 * math.pi) ** 2 * lam**2 * f2) ** -1.5  # 2-D transform of exp(-r / lambda)
+
+    def support_px(self, values):
+        # light beyond 3 lengths wraps only after 6 (the padding is 2 x support): < 2 % of the tail
+        return 3.0 * float(values["tail_length_px"])
+
+
+class EllipticalGaussianKernel(KernelTerm):
+    """An elliptical Gaussian core kernel: axes sigma_px sqrt(aniso_ratio) along
+    ``aniso_angle_deg`` (from the X axis towards Y) and sigma_px / sqrt(aniso_ratio) across
+    it (the same area as the isotropic kernel of sigma_px). Replaces ``GaussianKernel``.
+
+    Residual signature under Eq. 1: the error depends on the edge orientation. Edges
+    whose normal lies along the major axis print too far out, edges along it print too
+    short; corners and round features stretch along one direction.
+    """
+
+    name = "anisotropy"
+    params = (
+        GaussianKernel.params[0],
+        ParamSpec("aniso_ratio", 1.0, (0.5, 2.0), "", "sigma_major / sigma_minor of the kernel (< 1: the axis is across aniso_angle_deg)"),
+        ParamSpec("aniso_angle_deg", 0.0, (-45.0, 45.0), "degrees", "direction of the kernel's axis of sigma_px sqrt(aniso_ratio)"),
+    )
+    formula = "Gauss_sigma elliptical: sigma sqrt(ratio) along aniso_angle, sigma / sqrt(ratio) across"
+
+    def transfer(self, fy, fx, theta):
+        s = theta["sigma_px"].clamp_min(1e-3)
+        r = theta["aniso_ratio"].clamp_min(0.05)
+        th = theta["aniso_angle_deg"] * (math.pi / 180)
+        su2 = (s**2 * r)[:, None, None]
+        sv2 = (s**2 / r)[:, None, None]
+        c, sn = torch.cos(th)[:, None, None], torch.sin(th)[:, None, None]
+        num = 0.0
+        den = 0.0
+        # periodised continuous transfer (the sampled kernel), like sampled_gaussian_transfer
+        for ky in (-1, 0, 1):
+            for kx in (-1, 0, 1):
+                Fy = fy[None, :, None] + ky
+                Fx = fx[None, None, :] + kx
+                u = c * Fx + sn * Fy
+                v = -sn * Fx + c * Fy
+                num = num + torch.exp(-2 * math.pi**2 * (su2 * u**2 + sv2 * v**2))
+                U, V = c * kx + sn * ky, -sn * kx + c * ky
+                den = den + torch.exp(-2 * math.pi**2 * (su2 * U**2 + sv2 * V**2))
+        return num / den
+
+    def support_px(self, values):
+        r = float(values.get("aniso_ratio", 1.0))
+        return 4.0 * float(values["sigma_px"]) * math.sqrt(max(r, 1.0 / max(r, 1e-6)))
+
+
+class GammaDose(DoseResponse):
+    """A nonlinear grey-level response: the dose of grey level g is (g / 255)^dose_gamma.
+    Replaces ``LinearDose``.
+
+    Residual signature under Eq. 1: the error depends on the mask's grey level. Grey
+    features print too small (gamma > 1) or too big (gamma < 1) while full-grey (255)
+    features fit; the residual vs grey level of the nearest lit mask pixel slopes.
+    """
+
+    name = "dose_nonlinearity"
+    params = (ParamSpec("dose_gamma", 1.0, (0.5, 2.0), "", "exponent of the grey level's dose (1: linear, Eq. 1)"),)
+    formula = "M -> M^dose_gamma"
+    # Lagrange interpolation of M^gamma in gamma at Chebyshev nodes over this range (wider
+    # than the bounds: the refinement may look outside them): relative error < 2e-4 for
+    # grey levels >= 96, and exact at 0 and 255
+    NODES_RANGE = (0.25, 2.75)
+    NODES = 6
+
+    def apply(self, M, theta):
+        g = theta["dose_gamma"].reshape(-1, 1, 1, 1)
+        m = M.clamp_min(1e-6)[None]
+        return torch.where(M[None] > 0, torch.exp(g * torch.log(m)), torch.zeros_like(m))
+
+    def _nodes(self):
+        lo, hi = self.NODES_RANGE
+        n = self.NODES
+        k = np.arange(n)
+        return (lo + hi) / 2 + (hi - lo) / 2 * np.cos((2 * k + 1) * math.pi / (2 * n))
+
+    def expansion(self):
+        nodes = [float(x) for x in self._nodes()]
+
+        def phi(g):
+            return lambda M: torch.where(M > 0, torch.exp(g * torch.log(M.clamp_min(1e-6))), torch.zeros_like(M))
+
+        def coef(theta):
+            gam = theta["dose_gamma"]
+            cols = []
+            for j, gj in enumerate(nodes):
+                a = torch.ones_like(gam)
+                for m, gm in enumerate(nodes):
+                    if m != j:
+                        a = a * (gam - gm) / (gj - gm)
+                cols.append(a)
+            return torch.stack(cols, dim=1)
+
+        return [phi(g) for g in nodes], coef
+
+
+class IlluminationField(FieldTerm):
+    """Illumination beyond Eq. 1's quadratic: the lowest-order terms it lacks, with
+    R^2 = X^2 + Y^2: ill_xy X Y + ill_xr2 X R^2 + ill_yr2 Y R^2 + ill_r4 R^4 (added to the
+    quadratic field; linear in its parameters, so the fast evaluator keeps its spectra).
+
+    Residual signature under Eq. 1: the error depends on the position in the field:
+    prints are too big where the lamp is brighter than the quadratic fit (e.g. the
+    corners under a positive R^4 term, a hotspot) and too small where it is dimmer; the
+    residual map averaged over prints (vs DMD coordinates) is smooth and non-zero.
+    """
+
+    name = "illumination_field"
+    params = (
+        ParamSpec("ill_xy", 0.0, (-0.25, 0.25), "relative dose", "coefficient of X Y"),
+        ParamSpec("ill_xr2", 0.0, (-0.25, 0.25), "relative dose", "coefficient of X (X^2 + Y^2)"),
+        ParamSpec("ill_yr2", 0.0, (-0.25, 0.25), "relative dose", "coefficient of Y (X^2 + Y^2)"),
+        # R^4 reaches 4 in the corners: +-0.25 spans a corner 1.0 dimmer or brighter
+        ParamSpec("ill_r4", 0.0, (-0.25, 0.25), "relative dose", "coefficient of (X^2 + Y^2)^2"),
+    )
+    formula = "field + ill_xy X Y + ill_xr2 X R^2 + ill_yr2 Y R^2 + ill_r4 R^4"
+
+    def basis(self, X, Y):
+        H, W = Y.shape[0], X.shape[1]
+        R2 = X**2 + Y**2
+        return {"ill_xy": (X * Y).expand(H, W), "ill_xr2": (X * R2).expand(H, W), "ill_yr2": (Y * R2).expand(H, W),
+                "ill_r4": (R2**2).expand(H, W)}
+
+    def field(self, X, Y, theta):
+        b = self.basis(X, Y)
+        return sum(theta[k][:, None, None] * v for k, v in b.items())
+
+
+class EdgeOffset(DoseTerm):
+    """Swelling (+) or erosion (-) of the print after the wash by ``edge_offset_px`` design
+    pixels, normal to its edges: to first order the print dilated by d is where
+    D + d |grad D| >= T, which this term gives (smooth, so the refinement and the mask
+    optimisation differentiate through it; exact for a dose scaled by a factor).
+
+    Residual signature under Eq. 1: a constant signed band along every print edge,
+    independent of grey level, density and position: the residual vs signed distance to
+    the edge is one-signed on both sides of the edge (prints too big everywhere, or too
+    small), and small gaps close (or thin lines vanish) more than T and sigma can explain.
+    """
+
+    name = "edge_offset"
+    params = (ParamSpec("edge_offset_px", 0.0, (-4.0, 4.0), "design pixels", "post-wash edge displacement (+ swelling, - erosion)"),)
+    formula = "D -> D + edge_offset |grad D|"
+
+    def apply(self, dose, gy, gx, theta):
+        d = theta["edge_offset_px"].reshape(-1, *([1] * (dose.dim() - 1)))
+        return dose + d * torch.sqrt(gx**2 + gy**2 + 1e-12)
+
+
 # ------------------------------------------------------------------------- geometry
 
 
@@ -279,7 +487,11 @@ class PrinterModel:
     def __init__(self, components: list[Component], name: str = "custom"):
         self.name = name
         self.components = list(components)
-        by_stage = {s: [c for c in self.components if c.stage == s] for s in ("field", "response", "kernel", "threshold")}
+        stages = ("field", "response", "kernel", "dose", "threshold")
+        unknown = sorted({c.stage for c in self.components} - set(stages))
+        if unknown:
+            raise ValueError(f"unknown component stage(s) {unknown}; known: {list(stages)}")
+        by_stage = {s: [c for c in self.components if c.stage == s] for s in stages}
         for s in ("field", "kernel"):
             if not by_stage[s]:
                 raise ValueError(f"a printer model needs at least one {s} term")
@@ -290,6 +502,7 @@ class PrinterModel:
         self.response: DoseResponse = by_stage["response"][0]
         self.kernels: list[KernelTerm] = by_stage["kernel"]
         self.threshold: Threshold = by_stage["threshold"][0]
+        self.dose_terms: list[DoseTerm] = by_stage["dose"]
         specs: dict[str, ParamSpec] = {}
         for c in self.components:
             for p in c.params:
@@ -341,7 +554,8 @@ class PrinterModel:
         _, H, W = masks.shape
         X, Y = self.coords(H, W, scale, masks.device)
         f = torch.relu(self.field(X, Y, theta))  # Guan et al. 2022, Eq. 1: light is non-negative
-        return self.response.apply(masks, theta)[None] * f[:, None]
+        r = self.response.apply(masks, theta)  # (B, H, W), or (P, B, H, W) for a response with parameters
+        return (r[None] if r.dim() == 3 else r) * f[:, None]
 
     def transfer(self, shape: tuple[int, int], theta: Theta, scale: float = 1.0, device=None) -> torch.Tensor:
         """(P, Nh, Nw//2+1) transfer function of the kernel on an rfft2 grid whose pixel
@@ -358,11 +572,28 @@ class PrinterModel:
         return num / den
 
     def blur_spectrum(self, spectrum: torch.Tensor, theta: Theta, shape, out_hw, scale: float = 1.0) -> torch.Tensor:
-        """Kernel applied to (P, B, Nh, Nw//2+1) exposure spectra -> (P, B, H, W) dose."""
+        """Kernel applied to (P, B, Nh, Nw//2+1) exposure spectra -> (P, B, H, W) dose.
+
+        Dose terms (stage "dose", e.g. ``EdgeOffset``) then act on the blurred dose and
+        its gradient (per design pixel), both taken from the same spectrum."""
         Ht = self.transfer(shape, theta, scale, spectrum.device)
+        spec = spectrum * Ht[:, None]
         # irfft2 in two passes, dropping the padding rows in between (less work, same result)
-        x = torch.fft.ifft(spectrum * Ht[:, None], dim=-2)[..., : out_hw[0], :]
-        return torch.fft.irfft(x, n=shape[1], dim=-1)[..., : out_hw[1]]
+        x = torch.fft.ifft(spec, dim=-2)[..., : out_hw[0], :]
+        dose = torch.fft.irfft(x, n=shape[1], dim=-1)[..., : out_hw[1]]
+        if not self.dose_terms:
+            return dose
+        Nh, Nw = shape
+        fy = torch.fft.fftfreq(Nh, device=spec.device, dtype=DTYPE) / scale
+        fx = torch.fft.rfftfreq(Nw, device=spec.device, dtype=DTYPE) / scale
+        fy = torch.where(fy.abs() >= 0.5 / scale - 1e-9, 0.0, fy)  # no derivative at the Nyquist frequency
+        fx = torch.where(fx >= 0.5 / scale - 1e-9, 0.0, fx)
+        gx = torch.fft.irfft(x * (2j * math.pi * fx), n=Nw, dim=-1)[..., : out_hw[1]]
+        xy = torch.fft.ifft(spec * (2j * math.pi * fy)[:, None], dim=-2)[..., : out_hw[0], :]
+        gy = torch.fft.irfft(xy, n=Nw, dim=-1)[..., : out_hw[1]]
+        for t in self.dose_terms:
+            dose = t.apply(dose, gy, gx, theta)
+        return dose
 
     def dose(self, masks: torch.Tensor, theta: Theta, scale: float = 1.0, shape=None) -> torch.Tensor:
         """(P, B, H, W) absorbed dose Gauss_sigma(ReLU(field) * M), zero padded (no wrap)."""
@@ -433,13 +664,20 @@ class FixedMasks:
         self.X, self.Y = model.coords(self.H, self.W, 1.0, self.masks.device)
         self.basis_names: list[str] | None = None
         self.spectra = None
+        self.response_terms = None  # (J, coefficients(theta) -> (P, J)) of a response expansion
         bases = [ft.basis(self.X, self.Y) for ft in model.fields]
-        if all(b is not None for b in bases) and not model.response.params:
+        expansion = model.response.expansion() if model.response.params else None
+        if all(b is not None for b in bases) and (not model.response.params or expansion is not None):
             basis = {k: v for b in bases for k, v in b.items()}
             self.basis_names = list(basis)
-            M = model.response.apply(self.masks, {})
-            # (K, B, Nh, Nw//2+1) complex, stored as real pairs for one matrix product
-            spec = torch.stack([torch.fft.rfft2(v[None] * M, s=self.shape) for v in basis.values()])
+            if expansion is None:
+                responses = [model.response.apply(self.masks, {})]
+            else:  # response = sum_j a_j(theta) phi_j(M): spectra of basis_k * phi_j(M)
+                phis, coef = expansion
+                responses = [phi(self.masks) for phi in phis]
+                self.response_terms = (len(phis), coef)
+            # (K, B, Nh, Nw//2+1) complex (K = bases x response terms), as real pairs for one matrix product
+            spec = torch.stack([torch.fft.rfft2(v[None] * r, s=self.shape) for v in basis.values() for r in responses])
             self.spectra = torch.view_as_real(spec).contiguous()
 
     @property
@@ -502,9 +740,12 @@ class FixedMasks:
         if not self.fast:
             d = self.model.dose(M, theta, shape=self.full_shape)
             return d[..., :: self.f, :: self.f]
-        K = len(self.basis_names)
+        K = self.spectra.shape[0]
         c = torch.stack([theta[k] for k in self.basis_names], dim=1)  # (P, K)
         P = c.shape[0]
+        if self.response_terms is not None:
+            J, coef = self.response_terms
+            c = (c[:, :, None] * coef(theta)[:, None, :].to(c)).reshape(P, K)
         if masks is None:  # sum_k c_pk spectrum_k as one matrix product
             spec = (c @ self.spectra.reshape(K, -1)).reshape(P, *self.spectra.shape[1:])
         else:  # a block: accumulate over k on views (no copy of the spectra)
@@ -555,9 +796,23 @@ def model_names() -> list[str]:
 
 
 def get_model(name: str = "eq1") -> PrinterModel:
-    if name not in _MODELS:
-        raise KeyError(f"unknown printer model {name!r}; known: {model_names()}")
-    return PrinterModel(_MODELS[name](), name=name)
+    """A named model, or a named model with effects: ``"eq1+heavy_tail+edge_offset"``."""
+    if name in _MODELS:
+        return PrinterModel(_MODELS[name](), name=name)
+    base, effects = split_model_name(name)
+    components = _MODELS[base]()
+    for e in effects:
+        components = EFFECTS[e].compose(components)
+    return PrinterModel(components, name=name)
+
+
+def is_model(name: str) -> bool:
+    """Whether ``get_model(name)`` knows the name (a registered model, with or without effects)."""
+    try:
+        split_model_name(name)
+    except KeyError:
+        return False
+    return True
 
 
 register_model("eq1", lambda: [QuadraticField(), LinearDose(), GaussianKernel(), Threshold()])  # Guan et al. 2022, Eq. 1
@@ -566,6 +821,111 @@ register_model("eq1", lambda: [QuadraticField(), LinearDose(), GaussianKernel(),
 def eq1() -> PrinterModel:
     """The paper's simulator, Eq. 1."""
     return get_model("eq1")
+
+
+# ------------------------------------------------------------------- effect library
+
+
+@dataclass(frozen=True)
+class Effect:
+    """A named physical effect beyond Eq. 1: how it changes a model's component list.
+
+    ``component`` is the class that carries its parameters (its docstring says which
+    residual signature the effect explains); at its parameters' defaults the extended
+    model equals the model it extends.
+    """
+
+    name: str
+    component: type
+    compose: object  # list of components -> list of components
+
+    @property
+    def params(self) -> tuple:
+        return self.component.params
+
+    @property
+    def signature(self) -> str:
+        doc = self.component.__doc__ or ""
+        i = doc.find("Residual signature")
+        return " ".join(doc[i:].split()) if i >= 0 else ""
+
+
+def _add(cls):
+    def compose(components):
+        if any(isinstance(c, cls) for c in components):
+            raise ValueError(f"the model already has {cls.name!r}")
+        i = max((j for j, c in enumerate(components) if c.stage == cls.stage), default=len(components) - 1)
+        return components[: i + 1] + [cls()] + components[i + 1 :]
+
+    return compose
+
+
+def _replace(old_cls, new_cls):
+    def compose(components):
+        hits = [i for i, c in enumerate(components) if type(c) is old_cls]
+        if not hits:
+            raise ValueError(f"effect {new_cls.name!r} replaces {old_cls.name!r}, which the model does not have")
+        return [new_cls() if type(c) is old_cls else c for c in components]
+
+    return compose
+
+
+EFFECTS: dict[str, Effect] = {}
+
+
+def register_effect(effect: Effect) -> None:
+    """Add an effect to the library (names are the diagnosis' candidate names)."""
+    if "+" in effect.name:
+        raise ValueError("effect names cannot contain '+'")
+    EFFECTS[effect.name] = effect
+
+
+register_effect(Effect("heavy_tail", HeavyTailKernel, _add(HeavyTailKernel)))
+register_effect(Effect("anisotropy", EllipticalGaussianKernel, _replace(GaussianKernel, EllipticalGaussianKernel)))
+register_effect(Effect("dose_nonlinearity", GammaDose, _replace(LinearDose, GammaDose)))
+register_effect(Effect("illumination_field", IlluminationField, _add(IlluminationField)))
+register_effect(Effect("edge_offset", EdgeOffset, _add(EdgeOffset)))
+
+
+def effect_names() -> list[str]:
+    """The library's effects, in its order (the order of a composite model's name)."""
+    return list(EFFECTS)
+
+
+def split_model_name(name: str) -> tuple[str, list[str]]:
+    """``"eq1+heavy_tail"`` -> ("eq1", ["heavy_tail"]); KeyError for unknown parts."""
+    base, *effects = str(name).split("+")
+    if base not in _MODELS:
+        raise KeyError(f"unknown printer model {base!r}; known: {model_names()}")
+    for e in effects:
+        if e not in EFFECTS:
+            raise KeyError(f"unknown effect {e!r} in model {name!r}; known: {effect_names()}")
+    if len(set(effects)) != len(effects):
+        raise KeyError(f"an effect appears twice in model {name!r}")
+    return base, effects
+
+
+def model_with_effects(model: str, effects) -> str:
+    """The canonical name of ``model`` plus ``effects`` (library order, no repeats)."""
+    base, have = split_model_name(model)
+    want = set(have) | set(effects)
+    for e in want:
+        if e not in EFFECTS:
+            raise KeyError(f"unknown effect {e!r}; known: {effect_names()}")
+    return "+".join([base] + [e for e in EFFECTS if e in want])
+
+
+def extend_params(params: Params, effects) -> Params:
+    """``params`` of a model with ``effects`` added at their neutral defaults: the same
+    printer, as the warm start of a fit of the extended model."""
+    name = model_with_effects(params.model, effects)
+    m = get_model(name)
+    values, bounds = {}, {}
+    for k, spec in m.specs.items():
+        values[k] = float(params.values[k]) if k in params.values else float(spec.default)
+        bounds[k] = tuple(params.bounds[k]) if k in params.bounds else tuple(float(x) for x in spec.bounds)
+    info = {k: v for k, v in params.info.items() if k == "parameter_extras"}
+    return Params(name, values, bounds, tuple(params.fixed), params.pixel_size_um, info)
 
 
 # ------------------------------------------------------------------- params.yaml
@@ -613,9 +973,10 @@ class Params:
             lo, hi = self.bounds[k]
             params[k] = dict(value=float(self.values[k]), fixed=k in self.fixed, lower=float(lo), upper=float(hi), unit=spec.unit, doc=spec.doc)
             params[k].update(self.info.get("parameter_extras", {}).get(k, {}))
+        extra = [c.formula for c in m.components if getattr(c, "formula", None)]
         d = dict(
             model=self.model,
-            equation=EQUATION + "  (Guan et al. 2022, Eq. 1)",
+            equation=EQUATION + "  (Guan et al. 2022, Eq. 1)" + "".join(f"; {f}" for f in extra),
             components=[c.name for c in m.components],
             coordinates=COORDINATES,
             gauge=self.gauge,
@@ -625,6 +986,9 @@ class Params:
         derived = {}
         if self.pixel_size_um and "sigma_px" in self.values:
             derived["sigma_um"] = float(self.values["sigma_px"]) * float(self.pixel_size_um)
+        for k in ("tail_length_px", "edge_offset_px"):
+            if self.pixel_size_um and k in self.values:
+                derived[k.replace("_px", "_um")] = float(self.values[k]) * float(self.pixel_size_um)
         if "c0" in self.values and "c0" not in self.fixed and self.values["c0"] > 0:
             # the gauge-free numbers: comparable between fits (c0 = 1 convention)
             c0 = float(self.values["c0"])
@@ -671,8 +1035,8 @@ def load_params(path) -> Params:
     path = Path(path)
     d = read_yaml(path)
     name = d.get("model", "eq1")
-    if name not in _MODELS:
-        raise InputError(path, f"unknown model {name!r}; known: {model_names()}")
+    if not is_model(name):
+        raise InputError(path, f"unknown model {name!r}; known: {model_names()} (with effects {effect_names()} as 'eq1+effect')")
     m = get_model(name)
     ps = d.get("parameters")
     if not isinstance(ps, dict):

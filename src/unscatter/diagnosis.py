@@ -1,0 +1,733 @@
+"""Residual diagnosis: find the physics a calibrated model misses, add it, recalibrate.
+
+A calibrated Eq. 1 model never matches real prints exactly; its residual (measured
+minus simulated print) carries what the model lacks. The loop here:
+
+1. **Held-out residuals.** k-fold over prints: every print's simulated print comes from
+   a fit that did not see it (the base model is refitted per fold too, warm-started
+   from its full-data calibration).
+2. **Diagnostics** of the held-out residual, each as numbers (``diagnostics.tsv``) and a
+   figure: residual vs signed distance to the mask edge; vs local mask density at
+   several radii; vs the grey level of the nearest lit mask pixel; vs position in the
+   field (DMD coordinates); vs edge orientation; the radially averaged amplitude
+   spectrum of print vs mask (MTF-style ratio, measured / simulated); residual maps.
+3. **Model selection.** Every candidate effect of the library (``model.EFFECTS``) is
+   added to the current model and fitted per fold (small GA warm-started from the
+   current model's fold fit, then the gradient refinement: ``calibration.fit_params``).
+   A candidate is accepted when the paired bootstrap over prints of the per-print
+   held-out error difference has its 2.5 % quantile above 0 *and* the mean improvement
+   is at least ``min_improvement`` of the current error; the best accepted candidate
+   is added and the search repeats on the extended model until none is accepted.
+4. **Unexplained structure.** For each binned diagnostic a statistic measures the
+   systematic residual: the share of the residual that the per-bin mean would remove
+   (sum over bins of |sum of signed residual| / pixels), minus its median under the
+   null of random sign flips of whole prints, relative to the mismatch rate there. A
+   diagnostic shows structure when the sign-flip p-value is below ``alpha`` and this
+   excess is at least ``structure_min``. Structure left after selection sets
+   ``unexplained_residual: true`` and names the diagnostics.
+
+Held-out error is the mismatch: the fraction of pixels where measured and simulated
+prints differ (the calibration's objective on held-out prints).
+
+Outputs under ``out_dir``: ``model.yaml`` (the selected model's params, loadable by
+``model.load_params``, plus ``effects`` and ``unexplained_residual``), ``ranking.tsv``,
+``before_after.tsv``, ``diagnostics.tsv``, ``structure.tsv``, ``diagnostics.png``,
+``residual_maps.png``, ``report.md``.
+
+This module never imports the virtual lab: it sees only registered prints and a params
+file, as from a real lab.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage
+
+from . import metrics
+from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
+from .calibration import Objective, Space, band_factor, fit_params, grid_factor, load_prints, residual_rgb
+from .io import InputError, write_tsv
+from .model import (
+    EFFECTS,
+    FixedMasks,
+    Params,
+    default_device,
+    effect_names,
+    extend_params,
+    get_model,
+    load_params,
+    masks_to_tensor,
+    save_params,
+    split_model_name,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULTS = dict(
+    folds=4,
+    population=12,  # GA per fold fit (warm-started: the current model's fit is one individual)
+    generations=4,
+    span=0.15,  # the parameters the current model has: searched in +- span x range around its fit
+    ga_size=128,  # GA sampling (about this many samples a side; see calibration.grid_factor)
+    refine=True,
+    refine_size=128,
+    temperatures=(0.1, 0.03),
+    refine_iters=20,  # L-BFGS iterations per temperature: the refinement finds the effects (GA: the box)
+    bootstrap=2000,  # paired bootstrap replicates over prints
+    min_improvement=0.03,  # accepted only if the mean held-out error drops by at least this share
+    max_rounds=5,
+    alpha=0.01,  # structure test: sign-flip p-value below this ...
+    structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch
+    permutations=999,
+    radii_um=(10.0, 30.0, 100.0, 300.0),
+    band_um=30.0,  # binned diagnostics (but the signed distance) use pixels this close to a mask edge
+    distance_um=60.0,  # residual vs signed distance from -this to +this
+    position_cells=8,
+    orientation_bins=12,
+    spectrum_bins=24,
+    figures=True,
+    device=None,
+    # torch CPU threads. The tensors are small: with 2 threads on 2 cores OpenMP spin-waits; measured
+    # 1 thread 1.5-50x faster per evaluation (benchmarks/bench_diagnosis.py). None: one per CPU core.
+    threads=1,
+)
+QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000,
+             permutations=499)
+
+ERROR = "held-out mismatch: fraction of pixels where the measured and the simulated print differ"
+
+
+# ------------------------------------------------------------------------ fitting
+
+
+class _Context:
+    """One model over all prints: the fast evaluator and its objectives per sampling."""
+
+    def __init__(self, params: Params, data, device, s):
+        self.params = params
+        self.model = get_model(params.model)
+        self.device = device
+        self.data = data
+        support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
+        self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support)
+        self._objs: dict[int, Objective] = {}
+        H, W = data.masks.shape[1:]
+        self.f_ga = grid_factor((H, W), s["ga_size"])
+        self.f_ref = grid_factor((H, W), s["refine_size"]) if s["refine"] else None
+
+    def obj(self, f: int) -> Objective:
+        if f not in self._objs:
+            self._objs[f] = Objective.build(self.sim, self.data.prints, f)
+        return self._objs[f]
+
+    def fit(self, start: dict, idx, seed: int, s: dict, known: set, desc: str) -> dict:
+        """Fit on prints ``idx`` from ``start``: GA in a box (+- span around the known
+        parameters, full bounds for the others) with ``start`` in its population, then
+        the refinement; kept only where they lower the objective on the training prints."""
+        p = self.params.with_values(**{k: start[k] for k in self.params.values})
+        full = Space(p)
+        lo, hi = full.lo.copy(), full.hi.copy()
+        for i, k in enumerate(full.names):
+            if k in known:
+                r = s["span"] * (hi[i] - lo[i])
+                c = min(max(start[k], lo[i]), hi[i])
+                lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
+        space = Space(p, lo, hi)
+        cache: dict[int, Objective] = {}
+        subset = idx is not None and len(idx) < len(self.data)
+
+        def obj(f):
+            if f not in cache:
+                cache[f] = self.obj(f).subset(idx) if subset else self.obj(f)
+            return cache[f]
+
+        f_ga = band_factor(self.sim, self.model, start, self.f_ga, 0.1)
+        f_ref = band_factor(self.sim, self.model, start, self.f_ref) if self.f_ref else None
+        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters")}, "progress": False}
+        fit = fit_params(space, self.model, obj, f_ga, f_ref, 1, self.device, seed, settings, s["population"],
+                         s["generations"], init=[space.encode(start)], desc=desc, history=False)
+        start_obj = float(obj(1).hard(self.model.theta(start, self.device))[0])
+        return fit.values if fit.objective <= start_obj else dict(start)
+
+    def predict(self, values: dict, idx) -> np.ndarray:
+        with torch.no_grad():
+            return self.sim.subset(idx).prints(self.model.theta(values, self.device))[0].cpu().numpy()
+
+
+@dataclass
+class Heldout:
+    """A model's k-fold held-out predictions."""
+
+    model: str
+    effects: list
+    fold_values: list  # fitted values per fold
+    sims: np.ndarray  # (B, H, W) bool: each print simulated by the fit without it
+    error: np.ndarray  # (B,) held-out mismatch per print
+    seconds: float
+    values: dict = field(default_factory=dict)  # the full-data fit (set for selected models)
+
+
+def _folds(n: int, k: int, seed: int) -> list:
+    perm = np.random.default_rng([seed, 7]).permutation(n)
+    return [np.sort(t) for t in np.array_split(perm, min(k, n))]
+
+
+def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed: int, desc: str, bar=None) -> Heldout:
+    t0 = time.perf_counter()
+    data = ctx.data
+    B = len(data)
+    sims = np.zeros(data.prints.shape, bool)
+    values = []
+    for i, test in enumerate(folds):
+        train = np.setdiff1d(np.arange(B), test)
+        v = ctx.fit(starts[i], train, seed + 101 * i, s, known, f"{desc} fold {i}")
+        values.append(v)
+        sims[test] = ctx.predict(v, test)
+        if bar is not None:
+            bar.update(1)
+    err = np.mean(sims != data.prints, axis=(1, 2))
+    _, effects = split_model_name(ctx.params.model)
+    return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
+
+
+def paired_bootstrap(before: np.ndarray, after: np.ndarray, replicates: int, seed: int) -> dict:
+    """Mean per-print improvement (before - after), its 95 % bootstrap interval over prints,
+    and the improvement relative to the mean error before."""
+    d = np.asarray(before, float) - np.asarray(after, float)
+    n = len(d)
+    rng = np.random.default_rng([seed, 13])
+    means = d[rng.integers(0, n, size=(int(replicates), n))].mean(axis=1) if n else np.zeros(1)
+    base = float(np.mean(before)) if n else float("nan")
+    return dict(improvement=float(d.mean()), ci_lo=float(np.quantile(means, 0.025)), ci_hi=float(np.quantile(means, 0.975)),
+                relative=float(d.mean() / base) if base > 0 else 0.0)
+
+
+# ----------------------------------------------------------------------- diagnostics
+
+
+@dataclass
+class Geometry:
+    """Per print, the bin of every pixel for each binned diagnostic (-1: not used)."""
+
+    names: list  # diagnostic names
+    labels: dict  # name -> list of bin labels
+    centres: dict  # name -> bin centres (numbers for plots)
+    bins: list  # per print: dict name -> (H, W) int16 bin index
+    mask_amp: np.ndarray  # (nbins,) radially averaged |FFT(mask)| summed over prints
+    freq: np.ndarray  # spectrum bin centres (cycles per mm)
+    fbin: np.ndarray  # (H, W) spectrum bin of each frequency
+
+
+def _signed_distance_px(lit: np.ndarray) -> np.ndarray:
+    """Distance to the mask edge (pixels): positive outside the lit mask, negative inside."""
+    if not lit.any():
+        return np.full(lit.shape, np.inf)
+    if lit.all():
+        return np.full(lit.shape, -np.inf)
+    return np.where(lit, -ndimage.distance_transform_edt(lit), ndimage.distance_transform_edt(~lit))
+
+
+def geometry(masks: np.ndarray, pixel_um: float, s: dict) -> Geometry:
+    B, H, W = masks.shape
+    band = s["band_um"] / pixel_um
+    dmax = s["distance_um"] / pixel_um
+    nd = int(math.ceil(dmax))
+    names = ["signed_distance"] + [f"density_{int(r)}um" for r in s["radii_um"]] + ["grey_level", "position", "orientation"]
+    labels, centres = {}, {}
+    dedges = np.arange(-nd, nd + 1)  # pixel bins
+    labels["signed_distance"] = [f"{a * pixel_um:.1f}..{b * pixel_um:.1f} um" for a, b in zip(dedges[:-1], dedges[1:])]
+    centres["signed_distance"] = (dedges[:-1] + 0.5) * pixel_um
+    dens_edges = np.linspace(0, 1, 11)
+    for r in s["radii_um"]:
+        n = f"density_{int(r)}um"
+        labels[n] = [f"{a:.1f}..{b:.1f}" for a, b in zip(dens_edges[:-1], dens_edges[1:])]
+        centres[n] = (dens_edges[:-1] + dens_edges[1:]) / 2
+    grey_edges = np.array([1, 64, 96, 128, 160, 192, 224, 255, 256])
+    labels["grey_level"] = [f"{a}..{b - 1}" for a, b in zip(grey_edges[:-1], grey_edges[1:])]
+    centres["grey_level"] = (grey_edges[:-1] + grey_edges[1:] - 1) / 2
+    nc = int(s["position_cells"])
+    labels["position"] = [f"row {i} col {j}" for i in range(nc) for j in range(nc)]
+    centres["position"] = np.arange(nc * nc)
+    no = int(s["orientation_bins"])
+    oedges = np.linspace(0, 180, no + 1)
+    labels["orientation"] = [f"{a:.0f}..{b:.0f} deg" for a, b in zip(oedges[:-1], oedges[1:])]
+    centres["orientation"] = (oedges[:-1] + oedges[1:]) / 2
+
+    rows = np.minimum(np.arange(H) * nc // H, nc - 1)
+    cols = np.minimum(np.arange(W) * nc // W, nc - 1)
+    cell = (rows[:, None] * nc + cols[None, :]).astype(np.int16)
+    fy = np.fft.fftfreq(H)[:, None]
+    fx = np.fft.rfftfreq(W)[None, :]
+    fr = np.hypot(fy, fx)
+    nb = int(s["spectrum_bins"])
+    fbin = np.minimum((fr / 0.5 * nb).astype(int), nb)  # nb: beyond Nyquist, not used
+    freq = (np.arange(nb) + 0.5) * 0.5 / nb / pixel_um * 1000  # cycles per mm
+    mask_amp = np.zeros(nb)
+    out = []
+    for m in masks:
+        M = m.astype(np.float64) / 255
+        lit = m > 0
+        sd = _signed_distance_px(lit)
+        near = np.abs(sd) <= band
+        b = {}
+        b["signed_distance"] = np.where(np.abs(sd) < nd, np.floor(sd).astype(np.int64) + nd, -1).astype(np.int16)
+        for r in s["radii_um"]:
+            size = 2 * int(round(r / pixel_um)) + 1
+            dens = ndimage.uniform_filter(M, size=size, mode="constant")
+            idx = np.minimum((dens * 10).astype(int), 9)
+            b[f"density_{int(r)}um"] = np.where(near, idx, -1).astype(np.int16)
+        if lit.any():
+            _, (iy, ix) = ndimage.distance_transform_edt(~lit, return_indices=True)
+            grey = m[iy, ix]
+        else:
+            grey = np.zeros_like(m)
+        b["grey_level"] = np.where(near & (grey > 0), np.searchsorted(grey_edges, grey, side="right") - 1, -1).astype(np.int16)
+        b["position"] = np.where(near, cell, -1).astype(np.int16)
+        sm = ndimage.gaussian_filter(lit.astype(np.float64), 2.0)
+        gy, gx = np.gradient(sm)
+        edge = np.hypot(gx, gy) > 0.05
+        if edge.any():
+            _, (ey, ex) = ndimage.distance_transform_edt(~edge, return_indices=True)
+            ang = np.degrees(np.arctan2(gy[ey, ex], gx[ey, ex])) % 180  # edge normal, mod 180
+            b["orientation"] = np.where(near, np.minimum((ang / 180 * no).astype(int), no - 1), -1).astype(np.int16)
+        else:
+            b["orientation"] = np.full(m.shape, -1, np.int16)
+        out.append(b)
+        mask_amp += _radial(np.abs(np.fft.rfft2(M)), fbin, nb)
+    return Geometry(names, labels, centres, out, mask_amp, freq, fbin)
+
+
+def _radial(amp: np.ndarray, fbin: np.ndarray, nb: int) -> np.ndarray:
+    s = np.bincount(fbin.ravel(), weights=amp.ravel(), minlength=nb + 1)[:nb]
+    n = np.bincount(fbin.ravel(), minlength=nb + 1)[:nb]
+    return s / np.maximum(n, 1)
+
+
+def residual_sums(geo: Geometry, prints: np.ndarray, sims: np.ndarray) -> dict:
+    """name -> (S, A, N): per print and bin the summed signed residual (measured -
+    simulated), summed |residual| and pixel count, each (B, nbins)."""
+    out = {}
+    for name in geo.names:
+        nb = len(geo.labels[name])
+        S, A, N = (np.zeros((len(prints), nb)) for _ in range(3))
+        for i, (p, sm) in enumerate(zip(prints, sims)):
+            b = geo.bins[i][name].ravel()
+            ok = b >= 0
+            r = p.ravel().astype(np.int8)[ok] - sm.ravel().astype(np.int8)[ok]
+            bb = b[ok]
+            S[i] = np.bincount(bb, weights=r, minlength=nb)[:nb]
+            A[i] = np.bincount(bb, weights=np.abs(r), minlength=nb)[:nb]
+            N[i] = np.bincount(bb, minlength=nb)[:nb]
+        out[name] = (S, A, N)
+    return out
+
+
+def structure_test(S: np.ndarray, A: np.ndarray, N: np.ndarray, permutations: int, seed: int) -> dict:
+    """Systematic residual of one binned diagnostic and its sign-flip null.
+
+    statistic = sum_b |sum_i S_ib| / sum N: the share of the pixels a per-bin correction
+    would fix. Under the null the prints' residual profiles have no common sign: flipping
+    whole prints at random gives its distribution. ``excess`` = (statistic - null median)
+    / mismatch rate.
+    """
+    n = N.sum()
+    if n == 0:
+        return dict(statistic=0.0, null_median=0.0, p_value=1.0, excess=0.0, mismatch=0.0)
+    obs = np.abs(S.sum(0)).sum() / n
+    rng = np.random.default_rng([seed, 17])
+    eps = rng.choice([-1.0, 1.0], size=(int(permutations), S.shape[0]))
+    null = np.abs(eps @ S).sum(1) / n
+    mism = A.sum() / n
+    p = (1 + np.count_nonzero(null >= obs - 1e-15)) / (1 + len(null))
+    med = float(np.median(null))
+    return dict(statistic=float(obs), null_median=med, p_value=float(p), excess=float((obs - med) / mism) if mism > 0 else 0.0,
+                mismatch=float(mism))
+
+
+def spectrum(geo: Geometry, prints: np.ndarray, sims: np.ndarray) -> dict:
+    nb = len(geo.freq)
+    am, asim = np.zeros(nb), np.zeros(nb)
+    for p, sm in zip(prints, sims):
+        am += _radial(np.abs(np.fft.rfft2(p.astype(np.float64))), geo.fbin, nb)
+        asim += _radial(np.abs(np.fft.rfft2(sm.astype(np.float64))), geo.fbin, nb)
+    mk = np.maximum(geo.mask_amp, 1e-12)
+    return dict(mtf_measured=am / mk, mtf_simulated=asim / mk, ratio=am / np.maximum(asim, 1e-12))
+
+
+def diagnose_residuals(geo: Geometry, prints: np.ndarray, sims: np.ndarray, s: dict, seed: int, model: str, stage: str):
+    """Rows for diagnostics.tsv and structure.tsv of one set of held-out predictions."""
+    rows, tests = [], []
+    sums = residual_sums(geo, prints, sims)
+    for name in geo.names:
+        S, A, N = sums[name]
+        n = N.sum(0)
+        for j, lab in enumerate(geo.labels[name]):
+            if n[j] == 0:
+                continue
+            rows.append(dict(stage=stage, model=model, diagnostic=name, bin=lab, x=float(geo.centres[name][j]), pixels=int(n[j]),
+                             prints=int(np.count_nonzero(N[:, j])), residual_mean=float(S[:, j].sum() / n[j]),
+                             mismatch=float(A[:, j].sum() / n[j])))
+        t = structure_test(S, A, N, s["permutations"], seed)
+        t["significant"] = bool(t["p_value"] < s["alpha"] and t["excess"] >= s["structure_min"])
+        tests.append(dict(stage=stage, model=model, diagnostic=name, **t))
+    sp = spectrum(geo, prints, sims)
+    for j, f in enumerate(geo.freq):
+        rows.append(dict(stage=stage, model=model, diagnostic="spectrum", bin=f"{f:.1f} cycles/mm", x=float(f), pixels=0, prints=len(prints),
+                         residual_mean=float(sp["ratio"][j] - 1), mismatch=float("nan"), mtf_measured=float(sp["mtf_measured"][j]),
+                         mtf_simulated=float(sp["mtf_simulated"][j]), spectrum_ratio=float(sp["ratio"][j])))
+    return rows, tests, sums, sp
+
+
+def summary_metrics(prints: np.ndarray, sims: np.ndarray, pixel_um: float) -> dict:
+    sc = [metrics.score(sm, p, pixel_um) for sm, p in zip(sims, prints)]
+    mean = lambda k: float(np.nanmean([x[k] for x in sc])) if any(np.isfinite(x[k]) for x in sc) else float("nan")  # noqa: E731
+    return dict(heldout_iou=mean("iou"), heldout_pixel_error=mean("pixel_error"), heldout_epe_um=mean("epe_um"),
+                heldout_mismatch=float(np.mean(sims != prints)))
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _figure_diagnostics(path, geo: Geometry, stages: list, pixel_um: float) -> None:
+    """stages: list of (label, sums, spectrum) to overlay."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    line_names = [n for n in geo.names if n != "position"]
+    npanel = len(line_names) + 1 + len(stages)
+    ncol = 4
+    nrow = -(-npanel // ncol)
+    fig = Figure(figsize=(4.2 * ncol, 3.2 * nrow))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrow, ncol, squeeze=False).ravel()
+    k = 0
+    for name in line_names:
+        ax = axes[k]
+        k += 1
+        for label, sums, _ in stages:
+            S, A, N = sums[name]
+            n = N.sum(0)
+            ok = n > 0
+            x = np.asarray(geo.centres[name])[ok]
+            ax.plot(x, S.sum(0)[ok] / n[ok], marker=".", label=f"{label}: signed")
+            ax.plot(x, A.sum(0)[ok] / n[ok], ls=":", label=f"{label}: |residual|")
+        ax.axhline(0, color="k", lw=0.5)
+        xl = {"signed_distance": "signed distance to mask edge (um, + outside)", "grey_level": "grey level of nearest lit pixel",
+              "orientation": "edge normal angle (deg)"}.get(name, "local mask density (mean grey / 255)")
+        ax.set_xlabel(xl, fontsize=8)
+        ax.set_ylabel("residual (measured - simulated)", fontsize=8)
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=7)
+        if k == 1:
+            ax.legend(fontsize=6)
+    ax = axes[k]
+    k += 1
+    for label, _, sp in stages:
+        ax.semilogx(geo.freq[1:], sp["ratio"][1:], marker=".", label=label)
+    ax.axhline(1, color="k", lw=0.5)
+    ax.set_xlabel("spatial frequency (cycles/mm)", fontsize=8)
+    ax.set_ylabel("|F(measured)| / |F(simulated)|", fontsize=8)
+    ax.set_title("radially averaged spectrum ratio", fontsize=9)
+    ax.legend(fontsize=6)
+    ax.tick_params(labelsize=7)
+    nc = int(round(math.sqrt(len(geo.labels["position"]))))
+    vmax = 1e-9
+    maps = []
+    for label, sums, _ in stages:
+        S, A, N = sums["position"]
+        mp = (S.sum(0) / np.maximum(N.sum(0), 1)).reshape(nc, nc)
+        maps.append((label, mp))
+        vmax = max(vmax, float(np.abs(mp).max()))
+    for label, mp in maps:
+        ax = axes[k]
+        k += 1
+        im = ax.imshow(mp, cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=(-1, 1, 1, -1))
+        ax.set_title(f"position (DMD X, Y): {label}", fontsize=9)
+        ax.set_xlabel("X", fontsize=8)
+        ax.set_ylabel("Y", fontsize=8)
+        fig.colorbar(im, ax=ax, fraction=0.046)
+    for ax in axes[k:]:
+        ax.set_axis_off()
+    fig.suptitle("held-out residual diagnostics (red/positive: printed but not simulated)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+
+
+def _figure_maps(path, data, before: Heldout, after: Heldout, n: int = 6) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    B = len(data)
+    order = np.argsort(-(before.error - after.error)) if after is not before else np.argsort(-before.error)
+    pick = order[: min(n, B)]
+    fig = Figure(figsize=(10, 2.6 * len(pick)))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(len(pick), 4, squeeze=False)
+    for row, j in zip(axes, pick):
+        panels = [(data.masks[j], f"{data.labels[j]}: mask", "gray"), (data.prints[j], "measured", "gray"),
+                  (residual_rgb(data.prints[j], before.sims[j]), f"held-out residual {before.model}\nmismatch {before.error[j]:.4f}", None),
+                  (residual_rgb(data.prints[j], after.sims[j]), f"held-out residual {after.model}\nmismatch {after.error[j]:.4f}", None)]
+        for ax, (img, title, cmap) in zip(row, panels):
+            ax.imshow(img, cmap=cmap, vmin=0 if cmap else None, vmax=(255 if img.dtype == np.uint8 else 1) if cmap else None)
+            ax.set_title(title, fontsize=7)
+            ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=72)
+
+
+# ------------------------------------------------------------------------- the loop
+
+
+def diagnose(prints_dirs, base_params, out_dir, folds: int | None = None, seed: int = 0, candidates=None, quick: bool = False,
+             progress: bool = True, **settings) -> dict:
+    """The closed loop: held-out residual diagnostics, greedy effect selection, outputs.
+
+    ``prints_dirs``: registration outputs (as ``calibrate`` takes); ``base_params``: the
+    base params.yaml (or Params) from ``unscatter calibrate``; ``candidates``: effect
+    names (default: the whole library, ``model.effect_names()``); ``quick``: the small
+    settings of ``QUICK`` (seconds to a minute). ``settings`` override ``DEFAULTS``.
+
+    Returns a summary dict: effects, model, unexplained_residual, unexplained_diagnostics,
+    before / after (held-out metrics), rounds (the ranking rows), seconds, out_dir.
+    """
+    unknown = sorted(set(settings) - set(DEFAULTS))
+    if unknown:
+        raise TypeError(f"unknown diagnosis setting(s) {unknown}; known: {sorted(DEFAULTS)}")
+    s = {**DEFAULTS, **(QUICK if quick else {}), **settings}
+    if folds is not None:
+        s["folds"] = int(folds)
+    if s["folds"] < 2:
+        raise ValueError("the diagnosis needs k-fold held-out residuals: folds >= 2")
+    threads = s["threads"] or os.cpu_count() or 1
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(threads))
+    try:
+        return _diagnose(prints_dirs, base_params, Path(out_dir), seed, candidates, progress, s)
+    finally:
+        torch.set_num_threads(before)
+
+
+def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, progress: bool, s: dict) -> dict:
+    from tqdm import tqdm
+
+    t_start = time.perf_counter()
+    device = torch.device(s["device"]) if s["device"] else default_device()
+    data = load_prints(prints_dirs)
+    base_path = None
+    if not isinstance(base_params, Params):
+        base_path = Path(base_params)
+        if base_path.is_dir():
+            base_path = base_path / "params.yaml"
+        base_params = load_params(base_path)
+    base = Params(base_params.model, dict(base_params.values), dict(base_params.bounds), tuple(base_params.fixed),
+                  base_params.pixel_size_um or data.pixel_size_um, {})
+    _, have = split_model_name(base.model)
+    cands = list(effect_names() if candidates is None else candidates)
+    bad = [c for c in cands if c not in EFFECTS]
+    if bad:
+        raise ValueError(f"unknown candidate effect(s) {bad}; known: {effect_names()}")
+    cands = [c for c in dict.fromkeys(cands) if c not in have]
+    B, H, W = data.masks.shape
+    if B < 2 * s["folds"] and B < 4:
+        raise InputError(data.prints_dirs[0], f"only {B} usable prints: too few for {s['folds']}-fold held-out residuals")
+    folds = _folds(B, s["folds"], seed)
+    px = data.pixel_size_um
+    log.info("diagnosis of %s on %d prints (%dx%d), %d folds, candidates %s", base.model, B, H, W, len(folds), cands)
+
+    # fits to run: base folds, then per round candidates x folds (+1 full-data fit per accepted)
+    total = len(folds) * (2 + len(cands)) + 1
+    bar = tqdm(total=total, desc="diagnosis fits", disable=not progress, unit="fit")
+
+    # -- round 0: the base model's held-out residuals -----------------------------------
+    ctx = _Context(base, data, device, s)
+    known = set(base.free)
+    cur = _heldout(ctx, [dict(base.values)] * len(folds), folds, s, known, seed, "base", bar)
+    cur.values = dict(base.values)
+    base_ho = cur
+    cur_params = base
+    del ctx
+
+    ranking = []
+    accepted_effects: list[str] = []
+    for rnd in range(1, int(s["max_rounds"]) + 1):
+        remaining = [c for c in cands if c not in accepted_effects]
+        if not remaining:
+            break
+        # the control: the current model refitted from its fold fits with the candidates'
+        # budget, so that an improvement is the effect's and not the extra optimisation's
+        ctx = _Context(cur_params, data, device, s)
+        ctl = _heldout(ctx, cur.fold_values, folds, s, set(cur_params.free), seed + 1000 * rnd, "control", bar)
+        del ctx
+        if ctl.error.mean() <= cur.error.mean():
+            ctl.values = cur.values
+            if cur is base_ho:
+                base_ho = ctl
+            cur = ctl
+        ranking.append(dict(round=rnd, candidate="(control)", model=cur.model, heldout_mismatch=float(cur.error.mean()),
+                            current_mismatch=float(cur.error.mean()), improvement=0.0, relative_improvement=0.0, ci_lo=0.0,
+                            ci_hi=0.0, heldout_iou=float(np.mean([metrics.iou(a, b) for a, b in zip(cur.sims, data.prints)])),
+                            accepted=False, selected=False, seconds=round(ctl.seconds, 2), effect_params=""))
+        results = {}
+        for c in remaining:
+            t0 = time.perf_counter()
+            p = extend_params(cur_params, [c])
+            p = p.with_values(**{k: v for k, v in cur.values.items() if k in p.values})
+            ctx = _Context(p, data, device, s)
+            starts = []
+            for v in cur.fold_values:
+                st = dict(p.values)
+                st.update({k: x for k, x in v.items() if k in st})
+                starts.append(st)
+            ho = _heldout(ctx, starts, folds, s, set(cur_params.free), seed + 1000 * rnd, f"+{c}", bar)
+            del ctx
+            stats = paired_bootstrap(cur.error, ho.error, s["bootstrap"], seed + rnd)
+            ok = stats["ci_lo"] > 0 and stats["relative"] >= s["min_improvement"]
+            results[c] = (p, ho, stats, ok)
+            effect_keys = [sp.name for sp in EFFECTS[c].params]
+            fold_mean = {k: float(np.mean([v[k] for v in ho.fold_values])) for k in effect_keys}
+            ranking.append(dict(round=rnd, candidate=c, model=p.model, heldout_mismatch=float(ho.error.mean()),
+                                current_mismatch=float(cur.error.mean()), improvement=stats["improvement"],
+                                relative_improvement=stats["relative"], ci_lo=stats["ci_lo"], ci_hi=stats["ci_hi"],
+                                heldout_iou=float(np.mean([metrics.iou(a, b) for a, b in zip(ho.sims, data.prints)])),
+                                accepted=ok, selected=False, seconds=round(time.perf_counter() - t0, 2),
+                                effect_params=", ".join(f"{k}={v:.4g}" for k, v in fold_mean.items())))
+            log.info("round %d: +%s held-out mismatch %.5f -> %.5f (%+.1f %%, 95%% CI of improvement %.2e..%.2e)%s", rnd, c,
+                     cur.error.mean(), ho.error.mean(), -100 * stats["relative"], stats["ci_lo"], stats["ci_hi"],
+                     " accepted" if ok else "")
+        good = [c for c in remaining if results[c][3]]
+        if not good:
+            break
+        best = max(good, key=lambda c: results[c][2]["improvement"])
+        for r in ranking:
+            if r["round"] == rnd and r["candidate"] == best:
+                r["selected"] = True
+        p, ho, _, _ = results[best]
+        # the full-data fit of the extended model, warm-started from the current one
+        ctx = _Context(p, data, device, s)
+        start = dict(p.values)
+        ho.values = ctx.fit(start, None, seed + 7000 + rnd, s, set(cur_params.free), f"full +{best}")
+        del ctx
+        bar.update(1)
+        bar.total += len(folds) * len(remaining) + 1
+        bar.refresh()
+        accepted_effects.append(best)
+        cur, cur_params = ho, p.with_values(**ho.values)
+    bar.close()
+
+    # -- diagnostics before and after ----------------------------------------------------
+    geo = geometry(data.masks, px, s)
+    rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho.sims, s, seed, base_ho.model, "before")
+    if cur is base_ho:
+        rows_a, tests_a, sums_a, sp_a = [], [dict(t, stage="after") for t in tests_b], sums_b, sp_b
+    else:
+        rows_a, tests_a, sums_a, sp_a = diagnose_residuals(geo, data.prints, cur.sims, s, seed, cur.model, "after")
+    unexplained = [t["diagnostic"] for t in tests_a if t["significant"]]
+
+    before_m = summary_metrics(data.prints, base_ho.sims, px)
+    after_m = summary_metrics(data.prints, cur.sims, px)
+    final = stats_final = None
+    if cur is not base_ho:
+        stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
+    final = cur_params if cur is not base_ho else base
+
+    # -- outputs -----------------------------------------------------------------------
+    out_dir.mkdir(parents=True, exist_ok=True)
+    elapsed = time.perf_counter() - t_start
+    info = dict(
+        effects=list(accepted_effects),
+        unexplained_residual=bool(unexplained),
+        unexplained_diagnostics=unexplained,
+        diagnosis=dict(
+            base_model=base.model, base_params=str(base_path.resolve()) if base_path else None,
+            prints_dirs=[str(Path(d).resolve()) for d in data.prints_dirs], prints=B, folds=len(folds), seed=seed,
+            candidates=cands, error=ERROR, heldout_before=before_m, heldout_after=after_m,
+            improvement=stats_final, seconds=round(elapsed, 1),
+            acceptance=(f"paired bootstrap over prints ({s['bootstrap']} replicates): 2.5 % quantile of the mean "
+                        f"per-print improvement > 0 and mean improvement >= {s['min_improvement']:.0%} of the current error"),
+            structure_test=(f"sign-flip p < {s['alpha']} and excess systematic residual >= {s['structure_min']:.0%} of the "
+                            "mismatch rate (see unscatter.diagnosis)"),
+            settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("device",)},
+        ),
+    )
+    save_params(out_dir / "model.yaml", final, **info)
+    rank_cols = ["round", "candidate", "model", "heldout_mismatch", "current_mismatch", "improvement", "relative_improvement",
+                 "ci_lo", "ci_hi", "heldout_iou", "accepted", "selected", "seconds", "effect_params"]
+    write_tsv(out_dir / "ranking.tsv", ranking, rank_cols)
+    ba = [dict(model="base", name=base_ho.model, effects="", **before_m),
+          dict(model="selected", name=cur.model, effects=",".join(accepted_effects), **after_m)]
+    write_tsv(out_dir / "before_after.tsv", ba, ["model", "name", "effects", "heldout_iou", "heldout_pixel_error",
+                                                 "heldout_epe_um", "heldout_mismatch"])
+    diag_cols = ["stage", "model", "diagnostic", "bin", "x", "pixels", "prints", "residual_mean", "mismatch", "mtf_measured",
+                 "mtf_simulated", "spectrum_ratio"]
+    if cur is base_ho:
+        rows_a = [dict(r, stage="after") for r in rows_b]
+    write_tsv(out_dir / "diagnostics.tsv", rows_b + rows_a, diag_cols)
+    write_tsv(out_dir / "structure.tsv", tests_b + tests_a, ["stage", "model", "diagnostic", "statistic", "null_median",
+                                                           "p_value", "excess", "mismatch", "significant"])
+    if s["figures"]:
+        stages = [(f"before ({base_ho.model})", sums_b, sp_b)]
+        if cur is not base_ho:
+            stages.append((f"after ({cur.model})", sums_a, sp_a))
+        _figure_diagnostics(out_dir / "diagnostics.png", geo, stages, px)
+        _figure_maps(out_dir / "residual_maps.png", data, base_ho, cur)
+    _report(out_dir / "report.md", base_ho, cur, accepted_effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B,
+            len(folds), elapsed, stats_final)
+    log.info("diagnosis done in %.1f s: effects %s, unexplained residual %s", elapsed, accepted_effects or "none", bool(unexplained))
+    return dict(effects=list(accepted_effects), model=cur.model, unexplained_residual=bool(unexplained),
+                unexplained_diagnostics=unexplained, before=before_m, after=after_m, rounds=ranking, structure_before=tests_b,
+                structure_after=tests_a, seconds=elapsed, out_dir=str(out_dir))
+
+
+def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B, k, elapsed, stats):
+    f = lambda x, d=4: "nan" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{d}f}"  # noqa: E731
+    lines = ["# Residual diagnosis", ""]
+    lines.append(f"{B} prints, {k}-fold held-out residuals; base model `{base_ho.model}`; {elapsed:.0f} s.")
+    lines.append("")
+    if effects:
+        lines.append(f"**Selected model:** `{cur.model}` (effects added, in order: {', '.join(effects)}).")
+    else:
+        lines.append("**No effect accepted**: no candidate lowered the held-out error beyond the noise; the base model stays.")
+    lines.append("")
+    lines.append("| model | held-out IoU | pixel error | EPE (um) | mismatch |")
+    lines.append("|---|---|---|---|---|")
+    for name, m in ((base_ho.model, before_m), (cur.model, after_m)) if cur is not base_ho else ((base_ho.model, before_m),):
+        lines.append(f"| {name} | {f(m['heldout_iou'])} | {f(m['heldout_pixel_error'])} | {f(m['heldout_epe_um'], 2)} | "
+                     f"{f(m['heldout_mismatch'], 5)} |")
+    if stats:
+        lines.append("")
+        lines.append(f"Held-out mismatch lower by {100 * stats['relative']:.1f} % (95 % bootstrap interval of the mean per-print "
+                     f"improvement {stats['ci_lo']:.2e} .. {stats['ci_hi']:.2e}).")
+    lines += ["", "## Candidates", "", "| round | candidate | held-out mismatch | improvement | 95 % CI | accepted | selected |",
+              "|---|---|---|---|---|---|---|"]
+    for r in ranking:
+        lines.append(f"| {r['round']} | {r['candidate']} | {f(r['heldout_mismatch'], 5)} | {100 * r['relative_improvement']:+.1f} % | "
+                     f"{r['ci_lo']:.1e} .. {r['ci_hi']:.1e} | {'yes' if r['accepted'] else 'no'} | {'**yes**' if r['selected'] else ''} |")
+    lines += ["", f"Accepted: 95 % bootstrap interval above 0 and at least {s['min_improvement']:.0%} lower held-out error.", "",
+              "## Structure left in the residual", "",
+              "| diagnostic | excess before | p before | excess after | p after |", "|---|---|---|---|---|"]
+    after = {t["diagnostic"]: t for t in tests_a}
+    for t in tests_b:
+        a = after[t["diagnostic"]]
+        mark = lambda x: " **sig.**" if x["significant"] else ""  # noqa: E731
+        lines.append(f"| {t['diagnostic']} | {t['excess']:.3f}{mark(t)} | {t['p_value']:.3f} | {a['excess']:.3f}{mark(a)} | "
+                     f"{a['p_value']:.3f} |")
+    lines.append("")
+    if unexplained:
+        lines.append(f"**Unexplained residual**: structure remains that no candidate explains, shown by: {', '.join(unexplained)}.")
+    else:
+        lines.append("No significant structure remains in the held-out residual (unexplained_residual: false).")
+    lines += ["", "Figures: `diagnostics.png` (before/after), `residual_maps.png`. Numbers: `diagnostics.tsv`, "
+              "`structure.tsv`, `ranking.tsv`, `before_after.tsv`. Selected model: `model.yaml`.", ""]
+    Path(path).write_text("\n".join(lines))
+
+
+__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "structure_test", "geometry", "residual_sums", "spectrum",
+           "Heldout", "ERROR"]
