@@ -12,7 +12,7 @@ rule report:
     log:
         f"{RESULTS}/logs/report.log",
     params:
-        results=RESULTS,
+        results=lambda w, output: os.path.dirname(output[0]),
         benchmark_batches=list(BENCHMARK_BATCH),
         code=code_version("report"),
     localrule: True
