@@ -390,5 +390,47 @@ def report_cmd(results_dir, output):
     click.echo(f"report -> {out}")
 
 
+# -------------------------------------------------------------------- diagnose
+@main.command("diagnose")
+@click.argument("prints_dirs", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
+@click.option("--base", "base_params", required=True, type=click.Path(path_type=Path),
+              help="The base params.yaml from `unscatter calibrate` (or its folder).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--folds", type=int, default=None, help="k-fold over prints for the held-out residuals (default 4; --quick 3).")
+@click.option("--seed", default=0, show_default=True)
+@click.option("--candidates", default=None, metavar="A,B,...",
+              help="Candidate effects, comma-separated (default: the whole library).")
+@click.option("--quick", is_flag=True, help="Small fits and fewer folds: seconds to a minute (CI).")
+@click.option("--threads", type=int, default=None, help="torch CPU threads (default 1: fastest when cores are shared).")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, quick, threads, progress):
+    """Residual diagnosis of a calibrated model on registered prints (PRINTS_DIR: registration outputs):
+    held-out residual diagnostics, effects added while they lower the held-out error, the selected model."""
+    from .diagnosis import diagnose
+    from .model import effect_names
+
+    cands = None
+    if candidates:
+        cands = [c.strip() for c in candidates.split(",") if c.strip()]
+        bad = [c for c in cands if c not in effect_names()]
+        if bad:
+            raise click.BadParameter(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(effect_names())}",
+                                     param_hint="--candidates")
+    more = {} if threads is None else dict(threads=threads)
+    try:
+        r = diagnose(list(prints_dirs), base_params, out_dir, folds=folds, seed=seed, candidates=cands, quick=quick,
+                     progress=progress, **more)
+    except ValueError as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise click.UsageError(str(exc)) from None
+    b, a = r["before"], r["after"]
+    eff = ", ".join(r["effects"]) or "none"
+    click.echo(f"effects added: {eff}; held-out IoU {b['heldout_iou']:.4f} -> {a['heldout_iou']:.4f}, pixel error "
+               f"{b['heldout_pixel_error']:.4f} -> {a['heldout_pixel_error']:.4f}; unexplained residual: "
+               f"{'yes (' + ', '.join(r['unexplained_diagnostics']) + ')' if r['unexplained_residual'] else 'no'} "
+               f"({r['seconds']:.0f} s) -> {out_dir / 'model.yaml'}")
+
+
 if __name__ == "__main__":  # pragma: no cover
     main()

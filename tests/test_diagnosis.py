@@ -1,0 +1,337 @@
+"""Residual diagnosis and the effect library: each effect of the library, printed by the
+virtual lab (its heavy tail off, that one effect on), is named by the loop and lowers
+the held-out error; Eq. 1-like prints get nothing added. Plus the effect components
+against the lab's printer, extended params files through simulate / augment / ILT, and
+the CLI."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from unscatter import metrics
+from unscatter.calibration import calibrate
+from unscatter.diagnosis import diagnose, paired_bootstrap, structure_test
+from unscatter.io import read_tsv, read_yaml, write_png, write_tsv, write_yaml
+from unscatter.masks import trial_masks
+from unscatter.model import (
+    EFFECTS,
+    FixedMasks,
+    default_params,
+    effect_names,
+    extend_params,
+    get_model,
+    load_params,
+    masks_to_tensor,
+    model_with_effects,
+    save_params,
+    simulate,
+)
+
+CPU = torch.device("cpu")
+PX = 2.96
+SIZE = 256
+# the lab with every effect beyond Eq. 1 switched off (its default heavy tail included)
+EQ1_LAB = {"printer": {"kernel": {"heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
+                       "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0}}
+# one effect on, strong enough to matter at 256 x 256
+LAB_EFFECTS = {
+    "heavy_tail": {"printer": {"kernel": {"heavy_tail": {"fraction": 0.25, "length_um": 60.0}}}},
+    "anisotropy": {"printer": {"kernel": {"anisotropy": {"ratio": 1.8, "angle_deg": 30.0}}}},
+    "dose_nonlinearity": {"printer": {"dose_gamma": 1.8}},
+    "illumination_field": {"printer": {"illumination": {"quartic": -0.15}}},
+    "edge_offset": {"printer": {"edge_offset_um": 6.0}},
+}
+# the same effects as model parameters (the lab's truth in the model's units)
+TRUE_EFFECT_PARAMS = {
+    "heavy_tail": dict(tail_fraction=0.25, tail_length_px=60.0 / PX),
+    "anisotropy": dict(aniso_ratio=1.8, aniso_angle_deg=30.0),
+    "dose_nonlinearity": dict(dose_gamma=1.8),
+    "illumination_field": dict(ill_r4=-0.15),
+    "edge_offset": dict(edge_offset_px=6.0 / PX),
+}
+QUIET = dict(progress=False)
+
+
+def _merge(a: dict, b: dict) -> dict:
+    out = copy.deepcopy(a)
+    for k, v in b.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def lab_config(effect: str | None, noise: bool = True) -> dict:
+    from unscatter.lab import load_config
+
+    over = _merge(EQ1_LAB, LAB_EFFECTS[effect]) if effect else EQ1_LAB
+    if not noise:
+        over = _merge(over, {"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}})
+    return load_config(overrides=over)
+
+
+def eq1_truth(cfg: dict) -> dict:
+    il, pc = cfg["printer"]["illumination"], cfg["printer"]
+    return dict(c0=1.0, c1=il["cx2"], c2=il["cy2"], c3=il["cx"], c4=il["cy"], sigma_px=pc["kernel"]["sigma_um"] / PX,
+                T=pc["cure"]["threshold"])
+
+
+def lab_prints(root: Path, effect: str | None, count: int = 20) -> Path:
+    """The lab's prints (its noise-free-microscope truth: the print in mask coordinates)
+    of ``count`` trial masks, as a registration output."""
+    from unscatter.lab import Printer
+
+    cfg = lab_config(effect)
+    printer = Printer(cfg["printer"], SIZE, PX)
+    rows = []
+    for i, (mid, m) in enumerate(trial_masks(count, seed=0, size=SIZE).items()):
+        pr = printer.crop(printer.density(m, np.random.default_rng([1, i]))) >= cfg["microscope"]["level"]
+        write_png(root / "masks" / f"{mid}.png", m)
+        write_png(root / f"{mid}.png", pr)
+        rows.append(dict(id=mid, status="ok" if pr.any() else "empty", reason="", mask=f"masks/{mid}.png"))
+    write_tsv(root / "qc.tsv", rows, ["id", "status", "reason", "mask"])
+    write_yaml(root / "batch.yaml", dict(pixel_size_um=PX))
+    return root
+
+
+@pytest.fixture(scope="module")
+def case(tmp_path_factory):
+    """Lab prints with one effect (or none) and the Eq. 1 calibration on them; cached."""
+    made = {}
+
+    def make(effect):
+        if effect not in made:
+            root = tmp_path_factory.mktemp(f"lab_{effect or 'none'}")
+            prints = lab_prints(root / "prints", effect)
+            calibrate([prints], root / "cal", seed=0, population=24, generations=10, folds=0, bootstrap=0,
+                      residual_maps=False, figure=False, progress=False)
+            made[effect] = SimpleNamespace(root=root, prints=prints, params=root / "cal" / "params.yaml")
+        return made[effect]
+
+    return make
+
+
+# ------------------------------------------------------------------ effect components
+
+
+@pytest.mark.parametrize("effect", list(LAB_EFFECTS))
+def test_each_effect_reproduces_the_lab_printer(effect):
+    """With the lab's parameters the extended model prints what the lab prints (noise off);
+    at the effect's neutral defaults it is Eq. 1 exactly."""
+    from unscatter.lab import Printer
+
+    cfg = lab_config(effect, noise=False)
+    printer = Printer(cfg["printer"], SIZE, PX)
+    masks = list(trial_masks(4, seed=3, size=SIZE).values())
+    t = masks_to_tensor(np.stack(masks), CPU)
+    base = eq1_truth(cfg)
+    m = get_model(model_with_effects("eq1", [effect]))
+    neutral = {k: s.default for k, s in m.specs.items()} | base
+    true = neutral | TRUE_EFFECT_PARAMS[effect]
+    with torch.no_grad():
+        d_neutral = m.dose(t, m.theta(neutral, CPU))[0]
+        d_eq1 = get_model("eq1").dose(t, get_model("eq1").theta(base, CPU))[0]
+        prints = m.prints(t, m.theta(true, CPU))[0].numpy()
+        eq1_prints = (d_eq1 >= base["T"]).numpy()
+    torch.testing.assert_close(d_neutral, d_eq1, atol=1e-5, rtol=0)
+    ious, ious_eq1 = [], []
+    for i, mk in enumerate(masks):
+        truth = printer.crop(printer.density(mk, np.random.default_rng(0))) >= cfg["microscope"]["level"]
+        ious.append(metrics.iou(prints[i], truth))
+        ious_eq1.append(metrics.iou(eq1_prints[i], truth))
+    # exact but for float precision; edge_offset is first order in the offset (0.97 here)
+    assert np.mean(ious) > (0.96 if effect == "edge_offset" else 0.995), ious
+    assert np.mean(ious) > np.mean(ious_eq1) + 0.01  # and the effect matters at this strength
+
+
+def test_fixed_masks_evaluator_matches_the_model_with_every_effect():
+    name = model_with_effects("eq1", effect_names())
+    m = get_model(name)
+    v = {k: s.default for k, s in m.specs.items()} | dict(c1=-0.07, c2=-0.05, sigma_px=3.5, T=0.5)
+    for extra in TRUE_EFFECT_PARAMS.values():
+        v |= extra
+    masks = masks_to_tensor(np.stack(list(trial_masks(3, seed=2, size=128).values())), CPU)
+    fm = FixedMasks(m, masks, support_px=m.support_px(v) + 1)
+    assert fm.fast  # the gamma response is expanded, the extra field terms are linear
+    th = m.theta(v, CPU)
+    with torch.no_grad():
+        ref = m.dose(masks, th)
+        torch.testing.assert_close(fm.dose(th), ref, atol=2e-4, rtol=0)
+        torch.testing.assert_close(fm.decimated(2).dose(th), ref[..., ::2, ::2], atol=2e-4, rtol=0)
+
+
+def test_gradients_reach_every_effect_parameter():
+    name = model_with_effects("eq1", effect_names())
+    m = get_model(name)
+    v = {k: s.default for k, s in m.specs.items()} | dict(sigma_px=3.0, T=0.5, tail_fraction=0.2, aniso_ratio=1.3,
+                                                          aniso_angle_deg=10.0, dose_gamma=1.3, edge_offset_px=1.0,
+                                                          ill_r4=0.05, ill_xy=0.05)
+    th = {k: t.clone().requires_grad_(True) for k, t in m.theta(v, CPU).items()}
+    masks = masks_to_tensor(np.stack(list(trial_masks(2, seed=1, size=96).values())), CPU)
+    m.prints(masks, th, temperature=0.1).mean().backward()
+    for e in effect_names():
+        for p in EFFECTS[e].params:
+            g = th[p.name].grad
+            assert g is not None and torch.isfinite(g).all() and g.abs().sum() > 0, p.name
+
+
+def test_extended_params_file_round_trips_and_serves_simulate_augment_and_ilt(tmp_path):
+    from unscatter.augment import augment
+    from unscatter.calibration import simulate_dir
+    from unscatter.compensation import optimise_mask
+
+    name = model_with_effects("eq1", ["edge_offset", "heavy_tail"])
+    assert name == "eq1+heavy_tail+edge_offset"  # canonical: the library's order
+    p = extend_params(default_params(pixel_size_um=PX), ["heavy_tail", "edge_offset"])
+    assert p.model == name
+    p = p.with_values(sigma_px=3.0, tail_fraction=0.2, tail_length_px=12.0, edge_offset_px=1.5)
+    path = tmp_path / "model.yaml"
+    save_params(path, p, effects=["heavy_tail", "edge_offset"], unexplained_residual=False)
+    q = load_params(path)
+    assert q.model == name and q.values == pytest.approx(p.values) and q.info["effects"] == ["heavy_tail", "edge_offset"]
+    d = read_yaml(path)
+    assert d["derived"]["edge_offset_um"] == pytest.approx(1.5 * PX) and "tail_fraction" in d["equation"]
+
+    masks = tmp_path / "masks"
+    for mid, mk in trial_masks(2, seed=0, size=128).items():
+        write_png(masks / f"{mid}.png", mk)
+    out = simulate_dir(path, masks, tmp_path / "sim")
+    assert len(out) == 2
+    sim = simulate(q, list(trial_masks(2, seed=0, size=128).values()))
+    eq1_sim = simulate(default_params().with_values(sigma_px=3.0), list(trial_masks(2, seed=0, size=128).values()))
+    assert sim.sum() > eq1_sim.sum()  # swelling plus the tail's extra light: bigger prints
+
+    summary = augment(path, tmp_path / "aug.zarr", count=4, seed=0, size=128, workers=1, progress=False)
+    assert summary["count"] == 4
+
+    design = np.zeros((128, 128), bool)
+    design[40:90, 30:100] = True
+    mask, info = optimise_mask(design, q, schedule=((2, 10), (1, 5)))
+    assert mask.shape == design.shape and np.isfinite(info["loss"]).all()
+    assert info["model_iou"] >= info["identical_model_iou"]
+
+
+def test_unknown_effects_and_models_are_rejected(tmp_path):
+    with pytest.raises(KeyError):
+        get_model("eq1+glow")
+    with pytest.raises(KeyError):
+        model_with_effects("eq1", ["glow"])
+    p = default_params()
+    save_params(tmp_path / "p.yaml", p)
+    text = (tmp_path / "p.yaml").read_text().replace("model: eq1", "model: eq1+glow")
+    (tmp_path / "p.yaml").write_text(text)
+    from unscatter.io import InputError
+
+    with pytest.raises(InputError, match="unknown model"):
+        load_params(tmp_path / "p.yaml")
+
+
+# ---------------------------------------------------------------------- statistics
+
+
+def test_paired_bootstrap_separates_real_improvements_from_noise():
+    rng = np.random.default_rng(0)
+    before = rng.uniform(0.004, 0.006, 24)
+    better = paired_bootstrap(before, before * 0.8 + rng.normal(0, 1e-5, 24), 2000, 0)
+    assert better["ci_lo"] > 0 and better["relative"] == pytest.approx(0.2, abs=0.01)
+    noise = paired_bootstrap(before, before + rng.normal(0, 3e-4, 24), 2000, 0)
+    assert noise["ci_lo"] < 0 < noise["ci_hi"]
+
+
+def test_structure_test_flags_a_common_trend_but_not_noise():
+    rng = np.random.default_rng(1)
+    B, nb = 20, 10
+    N = np.full((B, nb), 1000.0)
+    A = np.full((B, nb), 30.0)
+    noise = rng.normal(0, 5, (B, nb))
+    trend = noise + np.linspace(-20, 20, nb)[None]  # every print: too small on the left, too big on the right
+    t = structure_test(trend, A, N, 999, 0)
+    assert t["p_value"] < 0.01 and t["excess"] > 0.15
+    t0 = structure_test(noise, A, N, 999, 0)
+    assert t0["p_value"] > 0.01 and t0["excess"] < 0.15
+
+
+# ------------------------------------------------------------------------- the loop
+
+
+def _check_outputs(out: Path, r: dict):
+    for f in ("model.yaml", "ranking.tsv", "before_after.tsv", "diagnostics.tsv", "structure.tsv", "diagnostics.png",
+              "residual_maps.png", "report.md"):
+        assert (out / f).is_file(), f
+    d = read_yaml(out / "model.yaml")
+    assert d["effects"] == r["effects"] and d["unexplained_residual"] == r["unexplained_residual"]
+    p = load_params(out / "model.yaml")
+    assert p.model == model_with_effects("eq1", r["effects"])
+    ba = {row["model"]: row for row in read_tsv(out / "before_after.tsv")}
+    assert set(ba) == {"base", "selected"}
+    diags = {row["diagnostic"] for row in read_tsv(out / "diagnostics.tsv")}
+    assert {"signed_distance", "density_10um", "density_300um", "grey_level", "position", "orientation", "spectrum"} <= diags
+
+
+@pytest.mark.slow
+def test_full_library_names_the_heavy_tail_and_lowers_heldout_error(case, tmp_path):
+    c = case("heavy_tail")
+    r = diagnose([c.prints], c.params, tmp_path / "d", quick=True, seed=0, **QUIET)
+    _check_outputs(tmp_path / "d", r)
+    assert r["effects"][:1] == ["heavy_tail"]
+    assert r["after"]["heldout_mismatch"] < 0.85 * r["before"]["heldout_mismatch"]
+    assert r["after"]["heldout_iou"] > r["before"]["heldout_iou"]
+    rows = read_tsv(tmp_path / "d" / "ranking.tsv")
+    first = [row for row in rows if row["round"] == "1" and row["candidate"] != "(control)"]
+    assert {row["candidate"] for row in first} == set(effect_names())  # every candidate was tried
+    best = max(first, key=lambda row: float(row["improvement"]))
+    assert best["candidate"] == "heavy_tail" and best["selected"] == "True"
+    # before: the residual trends with the density at large radii; the tail explains it
+    before = {t["diagnostic"]: t for t in r["structure_before"]}
+    assert before["density_300um"]["significant"]
+    assert not r["unexplained_residual"]
+
+
+@pytest.mark.slow
+def test_eq1_like_prints_get_no_effect(case, tmp_path):
+    c = case(None)
+    r = diagnose([c.prints], c.params, tmp_path / "d", quick=True, seed=0, **QUIET)
+    _check_outputs(tmp_path / "d", r)
+    assert r["effects"] == []
+    assert r["after"] == r["before"]
+    assert not r["unexplained_residual"]
+    assert load_params(tmp_path / "d" / "model.yaml").model == "eq1"
+
+
+# the effect and a decoy whose signature differs; the full list runs on the heavy tail above
+DECOYS = {"anisotropy": ["heavy_tail", "anisotropy"], "dose_nonlinearity": ["edge_offset", "dose_nonlinearity"],
+          "illumination_field": ["illumination_field", "anisotropy"], "edge_offset": ["heavy_tail", "edge_offset"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect", list(DECOYS))
+def test_the_loop_names_the_lab_effect(case, tmp_path, effect):
+    c = case(effect)
+    r = diagnose([c.prints], c.params, tmp_path / "d", quick=True, seed=0, candidates=DECOYS[effect], **QUIET)
+    assert r["effects"][:1] == [effect]
+    assert r["after"]["heldout_mismatch"] < 0.97 * r["before"]["heldout_mismatch"]
+    assert r["after"]["heldout_pixel_error"] < r["before"]["heldout_pixel_error"]
+    p = load_params(tmp_path / "d" / "model.yaml")
+    neutral = {s.name: s.default for s in EFFECTS[effect].params}
+    for k, v in TRUE_EFFECT_PARAMS[effect].items():  # the fitted effect goes the lab's way
+        if k != "aniso_angle_deg":
+            assert np.sign(p.values[k] - neutral[k]) == np.sign(v - neutral[k]), (k, p.values[k])
+
+
+def test_cli_diagnose(case, tmp_path):
+    from unscatter.cli import main
+
+    c = case(None)
+    out = tmp_path / "cli"
+    res = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out), "--quick",
+                                    "--candidates", "edge_offset", "--folds", "2", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert "effects added: none" in res.output and (out / "model.yaml").is_file()
+    bad = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out),
+                                    "--candidates", "glow"])
+    assert bad.exit_code == 2 and "glow" in bad.output
