@@ -335,3 +335,16 @@ def test_cli_diagnose(case, tmp_path):
     bad = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out),
                                     "--candidates", "glow"])
     assert bad.exit_code == 2 and "glow" in bad.output
+
+
+def test_too_few_prints_or_folds_are_rejected(tmp_path):
+    from unscatter.io import InputError
+
+    prints = lab_prints(tmp_path / "prints", None, count=3)
+    save_params(tmp_path / "p.yaml", default_params(pixel_size_um=PX))
+    with pytest.raises(InputError, match="too few"):
+        diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", quick=True, **QUIET)
+    with pytest.raises(ValueError, match="folds"):
+        diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", folds=1, **QUIET)
+    with pytest.raises(ValueError, match="unknown candidate"):
+        diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", candidates=["glow"], **QUIET)

@@ -95,8 +95,9 @@ DEFAULTS = dict(
     spectrum_bins=24,
     figures=True,
     device=None,
-    # torch CPU threads. The tensors are small: with 2 threads on 2 cores OpenMP spin-waits; measured
-    # 1 thread 1.5-50x faster per evaluation (benchmarks/bench_diagnosis.py). None: one per CPU core.
+    # torch CPU threads (None: one per CPU core). The tensors are small and OpenMP threads spin-wait:
+    # measured on 2 shared cores, 24 prints of 512 x 512, one evaluation at every 2nd pixel took
+    # 24-38 ms with 1 thread and 28-76 ms with 2, its gradient 53-81 ms vs 76-650 ms.
     threads=1,
 )
 QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000,
@@ -536,7 +537,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         raise ValueError(f"unknown candidate effect(s) {bad}; known: {effect_names()}")
     cands = [c for c in dict.fromkeys(cands) if c not in have]
     B, H, W = data.masks.shape
-    if B < 2 * s["folds"] and B < 4:
+    if B < max(4, s["folds"]):
         raise InputError(data.prints_dirs[0], f"only {B} usable prints: too few for {s['folds']}-fold held-out residuals")
     folds = _folds(B, s["folds"], seed)
     px = data.pixel_size_um
