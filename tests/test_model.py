@@ -229,6 +229,22 @@ def test_load_params_rejects_bad_files(tmp_path):
         default_params(bounds={"sigma_px": (2, 1)})
 
 
+def test_a_model_folder_loads_its_params_file(tmp_path):
+    """A calibration folder (params.yaml) and a diagnosis folder (model.yaml) both name a
+    model; a folder with neither is an error that names it."""
+    p = default_params(pixel_size_um=2.96).with_values(sigma_px=4.1)
+    (tmp_path / "cal").mkdir()
+    save_params(tmp_path / "cal" / "params.yaml", p)
+    (tmp_path / "diag").mkdir()
+    save_params(tmp_path / "diag" / "model.yaml", p.with_values(sigma_px=5.2), effects=[])
+    assert load_params(tmp_path / "cal").values["sigma_px"] == pytest.approx(4.1)
+    assert load_params(tmp_path / "diag").values["sigma_px"] == pytest.approx(5.2)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="params.yaml or model.yaml") as e:
+        load_params(tmp_path / "empty")
+    assert "empty" in str(e.value)
+
+
 def test_simulate_returns_binary_prints(tmp_path, border_mask):
     p = default_params().with_values(sigma_px=2.0, T=0.5)
     out = simulate(p, border_mask, device=CPU)

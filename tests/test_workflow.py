@@ -136,10 +136,12 @@ def test_default_config_dry_run():
     snakemake("--dry-run", "--cores", "2")
 
 
-# Every job after calibration, for the calibrated model eq1 and every method.
-DOWNSTREAM = [("augment", "model=eq1"), ("benchmark_job", ""), ("benchmark_simulated", ""),
-              ("compensate", "model=eq1, method=ilt"), ("compensate", "model=eq1, method=nn"),
-              ("compensate", "model=eq1, method=nn+ilt"), ("report", ""), ("train", "model=eq1")]
+# Every job after calibration: the diagnosis, the networks and masks of its selected
+# model (config 'model'), the base model's ilt masks (benchmark.compare) and the benchmark.
+DOWNSTREAM = [("augment", "model=selected"), ("benchmark_job", ""), ("benchmark_simulated", ""),
+              ("compensate", "model=eq1, method=ilt"), ("compensate", "model=selected, method=ilt"),
+              ("compensate", "model=selected, method=nn"), ("compensate", "model=selected, method=nn+ilt"),
+              ("diagnose", ""), ("report", ""), ("train", "model=selected")]
 
 
 def test_default_config_plans_every_stage(tmp_path):
@@ -163,29 +165,47 @@ def test_batches_source_plans_no_lab(tmp_path):
     assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session1")])
 
 
+def fake_outputs(results: Path, batches) -> None:
+    """Every output of a run on the measured batches, newer than every input."""
+    dirs = [f"prints/{b}" for b in batches] + ["calibration/eq1", "diagnosis", "augment/selected.zarr", "train/selected",
+                                               "compensated/selected/nn", "compensated/selected/ilt",
+                                               "compensated/selected/nn+ilt", "compensated/eq1/ilt", "benchmark/print_job",
+                                               "benchmark/simulated"]
+    for d in dirs:
+        (results / d).mkdir(parents=True)
+    (results / "report.html").write_text("report")
+
+
+def test_model_base_trains_on_the_base_model(tmp_path):
+    """model: base - the networks and masks use Eq. 1 as calibrated; the benchmark then
+    compares the selected model's ilt masks (ilt_selected), and the diagnosis still runs."""
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), model="base")
+    jobs = planned(configs=[cfg])
+    assert ("train", "model=eq1") in jobs and ("augment", "model=eq1") in jobs and ("diagnose", "") in jobs
+    assert [j for j in jobs if j[0] == "compensate"] == [
+        ("compensate", "model=eq1, method=ilt"), ("compensate", "model=eq1, method=nn"),
+        ("compensate", "model=eq1, method=nn+ilt"), ("compensate", "model=selected, method=ilt")]
+    assert ("train", "model=selected") not in jobs
+    out = snakemake("--dry-run", "--printshellcmds", configs=[cfg]).stdout
+    assert "compensated/selected/ilt" in out
+
+
 def test_adding_a_batch_plans_only_that_batch(tmp_path):
     results = tmp_path / "results"
     first, second = fake_batch(tmp_path, "session1"), fake_batch(tmp_path, "session2")
-    # session1 is registered already: its output is newer than its inputs and the rule's script
-    (results / "prints" / "session1").mkdir(parents=True)
+    # a whole run on session1 is done: every output is newer than its inputs and scripts
+    fake_outputs(results, ["session1"])
+    cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(first)])
+    assert planned(configs=[cfg]) == []
     cfg = write_config(tmp_path / "c.yaml", results=str(results), source="batches", batches=[str(first), str(second)])
-    # the new batch is registered, then everything that pools the batches is redone
+    # the new batch is registered, then the calibration, the diagnosis and everything after
+    # them is redone; session1's registration is not
     assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session2")])
     # a changed image of session1 reruns session1 too
     later = time.time() + 60
     os.utime(first / "images" / "p0.tif", (later, later))
     assert planned(configs=[cfg]) == sorted(DOWNSTREAM + [("calibrate", "model=eq1"), ("register_prints", "batch=session1"),
                                                           ("register_prints", "batch=session2")])
-
-
-def fake_outputs(results: Path, batches) -> None:
-    """Every output of a run on the measured batches, newer than every input."""
-    dirs = [f"prints/{b}" for b in batches] + ["calibration/eq1", "augment/eq1.zarr", "train/eq1", "compensated/eq1/nn",
-                                               "compensated/eq1/ilt", "compensated/eq1/nn+ilt", "benchmark/print_job",
-                                               "benchmark/simulated"]
-    for d in dirs:
-        (results / d).mkdir(parents=True)
-    (results / "report.html").write_text("report")
 
 
 def test_a_printed_benchmark_job_is_scored_not_calibrated_on(tmp_path):

@@ -105,7 +105,7 @@ def augment(
 ) -> dict:
     """Write ``count`` augmentation masks and their simulated prints to ``out_zarr``.
 
-    ``params_path``: a params.yaml from calibration (``unscatter.model.load_params``).
+    ``params_path``: a params file from calibration or diagnosis, or its folder (``unscatter.model.load_params``).
     ``families``: names (equal shares) or name -> weight (see ``masks.family_counts``);
     default: all seven augmentation families. ``workers`` threads (default: one per CPU
     core) each generate, simulate and write blocks of ``block`` samples, with one torch
@@ -120,9 +120,10 @@ def augment(
 
     from .masks import AUGMENT_FAMILIES, augmentation_families, family_counts
     from .model import default_device, load_params
+    from .model import params_path as params_path_of
 
     t0 = time.perf_counter()
-    params_path = Path(params_path)
+    params_path = params_path_of(params_path)
     params = load_params(params_path)  # errors name the file
     if count < 1:
         raise ValueError("count must be at least 1")

@@ -181,7 +181,7 @@ def simulator_printer(params) -> Printer:
     """
     from .model import load_params, simulate
 
-    p = params if not isinstance(params, (str, Path)) else load_params(Path(params) / "params.yaml" if Path(params).is_dir() else params)
+    p = params if not isinstance(params, (str, Path)) else load_params(params)
 
     def printer(masks: dict, exposures: dict) -> dict:
         out = {}

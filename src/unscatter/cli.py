@@ -362,7 +362,7 @@ def benchmark_simulate(designs_dir, out_dir, params_path, methods, doses):
     from .benchmark import run_benchmark, simulator_printer
     from .model import load_params
 
-    params = load_params(params_path / "params.yaml" if params_path.is_dir() else params_path)
+    params = load_params(params_path)
     rows = run_benchmark(designs_dir, _methods(methods), out_dir, params.pixel_size_um or 2.96,
                          simulator_printer(params), doses=_doses(doses))
     _summary_lines(rows)

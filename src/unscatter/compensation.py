@@ -72,15 +72,13 @@ NN_ILT_DEFAULTS = dict(ILT_DEFAULTS, schedule=((2, 16), (1, 8)), temperature=(0.
 
 
 def load_printer(model) -> Params:
-    """A calibrated printer: a Params, a params.yaml, or a calibration folder holding one."""
+    """A calibrated printer: a Params, a params file, or a model folder holding one
+    (a calibration's params.yaml, a diagnosis's model.yaml)."""
     if isinstance(model, Params):
         return model
     if model is None:
         raise ValueError("ILT needs the calibrated printer model (params.yaml or a calibration folder)")
-    path = Path(model)
-    if path.is_dir():
-        path = path / "params.yaml"
-    return load_params(path)
+    return load_params(model)
 
 
 def as_design(design) -> np.ndarray:

@@ -65,6 +65,7 @@ from .model import (
     get_model,
     load_params,
     masks_to_tensor,
+    params_path,
     save_params,
     split_model_name,
 )
@@ -524,9 +525,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     data = load_prints(prints_dirs)
     base_path = None
     if not isinstance(base_params, Params):
-        base_path = Path(base_params)
-        if base_path.is_dir():
-            base_path = base_path / "params.yaml"
+        base_path = params_path(base_params)
         base_params = load_params(base_path)
     base = Params(base_params.model, dict(base_params.values), dict(base_params.bounds), tuple(base_params.fixed),
                   base_params.pixel_size_um or data.pixel_size_um, {})

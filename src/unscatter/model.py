@@ -1028,11 +1028,30 @@ def save_params(path, params: Params, **info) -> None:
 _STRUCTURAL = ("model", "equation", "components", "coordinates", "gauge", "pixel_size_um", "parameters", "derived")
 
 
-def load_params(path) -> Params:
-    """Read a params.yaml written by ``save_params`` (checked; errors name the file)."""
-    from .io import InputError, read_yaml
+# The params file in a model folder: a calibration's, or a diagnosis's selected model.
+PARAMS_FILES = ("params.yaml", "model.yaml")
+
+
+def params_path(path) -> Path:
+    """The params file a path names: the file itself, or the one in a model folder
+    (``calibration/<model>/params.yaml`` or ``diagnosis/model.yaml``)."""
+    from .io import InputError
 
     path = Path(path)
+    if not path.is_dir():
+        return path
+    for name in PARAMS_FILES:
+        if (path / name).is_file():
+            return path / name
+    raise InputError(path, f"a model folder holds {' or '.join(PARAMS_FILES)}; this one has neither")
+
+
+def load_params(path) -> Params:
+    """Read a params.yaml written by ``save_params`` (checked; errors name the file).
+    ``path`` may also be a model folder (``params_path``)."""
+    from .io import InputError, read_yaml
+
+    path = params_path(path)
     d = read_yaml(path)
     name = d.get("model", "eq1")
     if not is_model(name):

@@ -143,12 +143,15 @@ def _registration(page: Page, prints_dir: Path, note: str = "") -> None:
     page.image(prints_dir / "overlays.png", "Registered images with the mask's contour over them (quality control).")
 
 
-def build_report(results_dir, out_html, title: str = "unscatter run report", benchmark_batches=()) -> Path:
+def build_report(results_dir, out_html, title: str = "unscatter run report", benchmark_batches=(),
+                 models: dict | None = None) -> Path:
     """Write the report of the run under ``results_dir`` to ``out_html``; returns its path.
 
     ``benchmark_batches``: names of the registered batches that are benchmark prints
-    (listed after the trial batches, marked as not calibrated on). Lists the outputs it
-    expected and did not find under 'Missing outputs'.
+    (listed after the trial batches, marked as not calibrated on). ``models``: which
+    printer model the networks and masks used and which one the benchmark compares it
+    with: ``{"model": "selected", "other": "base"}`` (the workflow's 'model' setting).
+    Lists the outputs it expected and did not find under 'Missing outputs'.
     """
     results = Path(results_dir)
     page = Page(results)
@@ -216,6 +219,10 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
 
     page.h(2, "6. Benchmark: compensated vs identical masks")
     bench = results / "benchmark"
+    if models:
+        page.p(f"Masks named by their method (nn, ilt, nn+ilt) were computed with the {models['model']} printer model; "
+               f"<method>_{models['other']} with the {models['other']} model, for comparison (the selected model is the "
+               "diagnosis's: the base model plus the effects it accepted).")
     if (bench / "summary.tsv").is_file():
         page.h(3, "Printed (registered and thresholded like the trial prints)")
         page.tsv(bench / "summary.tsv")

@@ -4,13 +4,13 @@ rule benchmark_job:
     batch.yaml, README.txt). A real printer prints it; with source 'lab' the lab does."""
     input:
         designs=design_files,
-        masks=lambda w: list(compensated().values()),
+        masks=lambda w: list(benchmark_masks().values()),
     output:
         directory(f"{RESULTS}/benchmark/print_job"),
     log:
         f"{RESULTS}/logs/benchmark/print_job.log",
     params:
-        methods=list(compensated()),
+        methods=list(benchmark_masks()),
         doses=config["benchmark"]["doses"],
         code=code_version("benchmark", "io"),
     localrule: True
@@ -23,14 +23,14 @@ rule benchmark_simulated:
     without) printing; every mask scored as the prints are."""
     input:
         designs=design_files,
-        masks=lambda w: list(compensated().values()),
-        model=calibrated_model(),
+        masks=lambda w: list(benchmark_masks().values()),
+        model=model_dir(MODEL),
     output:
         directory(f"{RESULTS}/benchmark/simulated"),
     log:
         f"{RESULTS}/logs/benchmark/simulated.log",
     params:
-        methods=list(compensated()),
+        methods=list(benchmark_masks()),
         doses=config["benchmark"]["doses"],
         code=code_version("benchmark", "metrics", "model", "io"),
     threads: 1

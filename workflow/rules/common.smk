@@ -85,6 +85,7 @@ ALL_BATCHES = {**BATCHES, **BENCHMARK_BATCH}
 
 wildcard_constraints:
     batch="|".join(re.escape(name) for name in ALL_BATCHES),
+    model=f"{re.escape(config['calibration']['model'])}|selected",
 
 
 def batch_folder(wildcards):
@@ -168,15 +169,44 @@ def registered_prints():
     return expand(f"{RESULTS}/prints/{{batch}}", batch=BATCHES)
 
 
-MODEL = config["calibration"]["model"]
+# The calibrated base model (Eq. 1) and the diagnosis's selected model (base + the
+# effects it accepted). As the {model} wildcard of augmentation, training and
+# compensation: the base model's name (eq1) or "selected".
+BASE_MODEL = config["calibration"]["model"]
+SELECTED = "selected"
+MODELS = {"base": BASE_MODEL, "selected": SELECTED}
+# The model that augmentation, training and compensation use (config 'model').
+MODEL = MODELS[config["model"]]
+# The other one: the benchmark compares its masks for the methods in benchmark.compare.
+OTHER = "selected" if config["model"] == "base" else "base"
 
 
 def calibrated_model():
-    return f"{RESULTS}/calibration/{MODEL}"
+    return f"{RESULTS}/calibration/{BASE_MODEL}"
+
+
+def diagnosis_dir():
+    return f"{RESULTS}/diagnosis"
+
+
+def model_dir(model):
+    """The folder of a {model} wildcard's params: the calibration's params.yaml, or the
+    diagnosis's model.yaml (unscatter.model.load_params takes either folder)."""
+    return diagnosis_dir() if model == SELECTED else f"{RESULTS}/calibration/{model}"
 
 
 def compensated(model=MODEL):
     return {m: f"{RESULTS}/compensated/{model}/{m}" for m in config["compensation"]["methods"]}
+
+
+def benchmark_masks():
+    """Benchmark method label -> folder of its masks: the methods with the model in use
+    under their own names, then benchmark.compare with the other model, as <method>_<other>
+    (e.g. ilt_base), so that the benchmark compares the base and the selected model."""
+    masks = compensated()
+    for m in config["benchmark"]["compare"]:
+        masks[f"{m}_{OTHER}"] = f"{RESULTS}/compensated/{MODELS[OTHER]}/{m}"
+    return masks
 
 
 def benchmark_targets():
@@ -191,8 +221,9 @@ def all_input(wildcards):
     targets = []
     targets += registered_prints()
     targets.append(calibrated_model())
+    targets.append(diagnosis_dir())
     targets.append(f"{RESULTS}/train/{MODEL}")
-    targets += list(compensated().values())
+    targets += list(benchmark_masks().values())
     targets += benchmark_targets()
     targets.append(f"{RESULTS}/report.html")
     return targets

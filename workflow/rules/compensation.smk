@@ -4,7 +4,7 @@ rule compensate:
     ILT); each also as the full DMD frame."""
     input:
         designs=design_files,
-        model=f"{RESULTS}/calibration/{{model}}",
+        model=lambda w: model_dir(w.model),
         train=lambda w: [] if w.method == "ilt" else f"{RESULTS}/train/{w.model}",
     output:
         directory(f"{RESULTS}/compensated/{{model}}/{{method}}"),

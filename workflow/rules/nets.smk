@@ -2,7 +2,7 @@ rule augment:
     """Simulated mask/print pairs from the calibrated printer (Guan et al. 2022, 'Data
     augmentation'): the augmentation families, a Zarr store with a train/test split."""
     input:
-        model=f"{RESULTS}/calibration/{{model}}",
+        model=lambda w: model_dir(w.model),
     output:
         directory(f"{RESULTS}/augment/{{model}}.zarr"),
     log:

@@ -4,8 +4,9 @@ rule report:
     input:
         registered_prints(),
         calibrated_model(),
+        diagnosis_dir(),
         f"{RESULTS}/train/{MODEL}",
-        lambda w: list(compensated().values()),
+        lambda w: list(benchmark_masks().values()),
         benchmark_targets(),
     output:
         f"{RESULTS}/report.html",
@@ -14,6 +15,7 @@ rule report:
     params:
         results=lambda w, output: os.path.dirname(output[0]),
         benchmark_batches=list(BENCHMARK_BATCH),
+        models={"model": config["model"], "other": OTHER},
         code=code_version("report"),
     localrule: True
     script:

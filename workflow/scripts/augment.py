@@ -1,7 +1,5 @@
 """Adapter of rule augment: unscatter.augment.augment."""
 
-from pathlib import Path
-
 from _adapter import start
 
 
@@ -11,7 +9,7 @@ def main(snakemake):
 
     p = snakemake.params
     s = augment(
-        Path(snakemake.input.model) / "params.yaml",
+        snakemake.input.model,
         snakemake.output[0],
         count=p.pairs,
         seed=p.seed,

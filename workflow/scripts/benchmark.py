@@ -28,7 +28,7 @@ def main(snakemake):
             return
         from unscatter.model import load_params
 
-        params = load_params(Path(snakemake.input.model) / "params.yaml")
+        params = load_params(snakemake.input.model)
         rows = bm.run_benchmark(designs, masks, snakemake.output[0], params.pixel_size_um or 2.96,
                                 bm.simulator_printer(params), doses=tuple(p.doses))
     for s in bm.summarise(rows):

@@ -1,7 +1,5 @@
 """Adapter of rule compensate: unscatter.compensation.compensate_designs."""
 
-from pathlib import Path
-
 from _adapter import start
 
 
@@ -15,7 +13,7 @@ def main(snakemake):
         p.folder,
         snakemake.output[0],
         method,
-        params_path=None if method == "nn" else Path(snakemake.input.model) / "params.yaml",
+        params_path=None if method == "nn" else snakemake.input.model,
         train_dir=None if method == "ilt" else snakemake.input.train,
         names=p.names or None,
         **settings,

@@ -8,7 +8,7 @@ def main(snakemake):
     from unscatter.report import build_report
 
     out = build_report(snakemake.params.results, snakemake.output[0],
-                       benchmark_batches=snakemake.params.benchmark_batches)
+                       benchmark_batches=snakemake.params.benchmark_batches, models=snakemake.params.models)
     log.info("report -> %s", out)
 
 

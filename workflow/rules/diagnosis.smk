@@ -1,0 +1,25 @@
+rule diagnose:
+    """The closed loop: held-out residual diagnostics of the calibrated model on the
+    prints of every batch, effects of the library added while they lower the held-out
+    error beyond the noise, the selected model (model.yaml) and the error before/after."""
+    input:
+        prints=registered_prints(),
+        base=calibrated_model(),
+    output:
+        directory(diagnosis_dir()),
+    log:
+        f"{RESULTS}/logs/diagnose.log",
+    benchmark:
+        f"{RESULTS}/benchmarks/diagnose.tsv"
+    params:
+        candidates=config["diagnosis"]["candidates"],
+        folds=config["diagnosis"]["folds"],
+        seed=config["diagnosis"]["seed"],
+        quick=config["diagnosis"]["quick"],
+        code=code_version("diagnosis", "calibration", "model", "io", "metrics"),
+    threads: 1  # one torch thread is fastest for its small FFTs (unscatter.diagnosis.DEFAULTS)
+    resources:
+        mem_mb=6000,
+        runtime=60,
+    script:
+        "../scripts/diagnose.py"
