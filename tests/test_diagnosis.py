@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from unscatter import metrics
 from unscatter.calibration import calibrate
-from unscatter.diagnosis import diagnose, paired_bootstrap, structure_test
+from unscatter.diagnosis import diagnose, fold_spread, paired_bootstrap, structure_test
 from unscatter.io import read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
 from unscatter.model import (
@@ -243,6 +243,13 @@ def test_paired_bootstrap_separates_real_improvements_from_noise():
     assert noise["ci_lo"] < 0 < noise["ci_hi"]
 
 
+def test_fold_spread_is_the_grouped_jackknife():
+    folds = [dict(a=1.0, b=5.0), dict(a=2.0, b=5.0), dict(a=3.0, b=5.0)]
+    s = fold_spread(folds, ["a", "b"])
+    assert s["a"] == pytest.approx(np.sqrt(2 / 3 * 2.0)) and s["b"] == 0.0
+    assert np.isnan(fold_spread(folds[:1], ["a"])["a"])
+
+
 def test_structure_test_flags_a_common_trend_but_not_noise():
     rng = np.random.default_rng(1)
     B, nb = 20, 10
@@ -267,6 +274,11 @@ def _check_outputs(out: Path, r: dict):
     assert d["effects"] == r["effects"] and d["unexplained_residual"] == r["unexplained_residual"]
     p = load_params(out / "model.yaml")
     assert p.model == model_with_effects("eq1", r["effects"])
+    # every fitted parameter carries its spread over the fold fits, in the file and report.md
+    for k in p.free:
+        std = d["parameters"][k]["std"]
+        assert np.isfinite(std) and std >= 0, (k, std)
+        assert f"| {k} |" in (out / "report.md").read_text()
     ba = {row["model"]: row for row in read_tsv(out / "before_after.tsv")}
     assert set(ba) == {"base", "selected"}
     diags = {row["diagnostic"] for row in read_tsv(out / "diagnostics.tsv")}

@@ -153,6 +153,14 @@ def test_resumed_run_equals_an_uninterrupted_one(dataset, tmp_path):
             assert float(ra[k]) == pytest.approx(float(rb[k]), rel=1e-5), (ra["epoch"], k)
     with pytest.raises(ValueError, match="other settings"):
         train(dataset, broken, preset="ci", settings=dict(epochs=3, lr=0.1), **FAST)
+    # the workflow's mode: a checkpoint from other settings is not resumed, training starts over
+    train(dataset, broken, preset="ci", settings=dict(epochs=1, lr=0.1), resume="matching", **FAST)
+    fresh = tmp_path / "fresh"
+    train(dataset, fresh, preset="ci", settings=dict(epochs=1, lr=0.1), **FAST)
+    a = torch.load(fresh / "master.pt", weights_only=True)["state_dict"]
+    b = torch.load(broken / "master.pt", weights_only=True)["state_dict"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert len(read_tsv(broken / "log.tsv")) == len(read_tsv(fresh / "log.tsv"))
 
 
 def test_same_seed_same_weights(dataset, tmp_path):

@@ -200,6 +200,22 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
     return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
 
 
+SPREAD = "grouped jackknife over the k fold fits: sqrt((k - 1) / k * sum (fold value - mean)^2)"
+
+
+def fold_spread(fold_values: list, names) -> dict:
+    """Standard error of each parameter from the k fold fits (each without one group of
+    prints): the delete-a-group jackknife, sqrt((k - 1) / k * sum_i (v_i - mean)^2)."""
+    k = len(fold_values)
+    if k < 2:
+        return {n: float("nan") for n in names}
+    out = {}
+    for n in names:
+        v = np.array([fv[n] for fv in fold_values], float)
+        out[n] = float(math.sqrt((k - 1) / k * np.sum((v - v.mean()) ** 2)))
+    return out
+
+
 def paired_bootstrap(before: np.ndarray, after: np.ndarray, replicates: int, seed: int) -> dict:
     """Mean per-print improvement (before - after), its 95 % bootstrap interval over prints,
     and the improvement relative to the mean error before."""
@@ -637,6 +653,9 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     if cur is not base_ho:
         stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
     final = cur_params if cur is not base_ho else base
+    spread = fold_spread(cur.fold_values, final.free)
+    final = Params(final.model, dict(final.values), dict(final.bounds), tuple(final.fixed), final.pixel_size_um,
+                   {**final.info, "parameter_extras": {k: {"std": v, "std_method": SPREAD} for k, v in spread.items()}})
 
     # -- outputs -----------------------------------------------------------------------
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -679,14 +698,15 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         _figure_diagnostics(out_dir / "diagnostics.png", geo, stages, px)
         _figure_maps(out_dir / "residual_maps.png", data, base_ho, cur)
     _report(out_dir / "report.md", base_ho, cur, accepted_effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B,
-            len(folds), elapsed, stats_final)
+            len(folds), elapsed, stats_final, final, spread)
     log.info("diagnosis done in %.1f s: effects %s, unexplained residual %s", elapsed, accepted_effects or "none", bool(unexplained))
     return dict(effects=list(accepted_effects), model=cur.model, unexplained_residual=bool(unexplained),
                 unexplained_diagnostics=unexplained, before=before_m, after=after_m, rounds=ranking, structure_before=tests_b,
                 structure_after=tests_a, seconds=elapsed, out_dir=str(out_dir))
 
 
-def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B, k, elapsed, stats):
+def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B, k, elapsed, stats,
+            final: Params, spread: dict):
     f = lambda x, d=4: "nan" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{d}f}"  # noqa: E731
     lines = ["# Residual diagnosis", ""]
     lines.append(f"{B} prints, {k}-fold held-out residuals; base model `{base_ho.model}`; {elapsed:.0f} s.")
@@ -705,6 +725,11 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
         lines.append("")
         lines.append(f"Held-out mismatch lower by {100 * stats['relative']:.1f} % (95 % bootstrap interval of the mean per-print "
                      f"improvement {stats['ci_lo']:.2e} .. {stats['ci_hi']:.2e}).")
+    lines += ["", f"## Parameters of `{final.model}`", "", "| parameter | value | std (jackknife over folds) | unit |",
+              "|---|---|---|---|"]
+    model = get_model(final.model)
+    for name in final.free:
+        lines.append(f"| {name} | {final.values[name]:.4g} | {spread.get(name, float('nan')):.2g} | {model.specs[name].unit} |")
     lines += ["", "## Candidates", "", "| round | candidate | held-out mismatch | improvement | 95 % CI | accepted | selected |",
               "|---|---|---|---|---|---|---|"]
     for r in ranking:
@@ -729,5 +754,5 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     Path(path).write_text("\n".join(lines))
 
 
-__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "structure_test", "geometry", "residual_sums", "spectrum",
+__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "fold_spread", "structure_test", "geometry", "residual_sums", "spectrum",
            "Heldout", "ERROR"]

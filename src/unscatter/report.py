@@ -143,6 +143,15 @@ def _registration(page: Page, prints_dir: Path, note: str = "") -> None:
     page.image(prints_dir / "overlays.png", "Registered images with the mask's contour over them (quality control).")
 
 
+def _params_table(page: Page, path: Path) -> None:
+    """A params file's equation and its parameters (value, spread, bounds)."""
+    d = read_yaml(path)
+    rows = [dict(parameter=k, value=v.get("value"), std=v.get("std", ""), lower=v.get("lower"), upper=v.get("upper"),
+                 fixed=v.get("fixed"), unit=v.get("unit", "")) for k, v in d.get("parameters", {}).items()]
+    page.p(str(d.get("equation", "")))
+    page.table(rows, path)
+
+
 def build_report(results_dir, out_html, title: str = "unscatter run report", benchmark_batches=(),
                  models: dict | None = None) -> Path:
     """Write the report of the run under ``results_dir`` to ``out_html``; returns its path.
@@ -167,11 +176,7 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
     for cal in sorted(p for p in (results / "calibration").glob("*") if p.is_dir()) if (results / "calibration").is_dir() else []:
         page.h(3, f"Model {cal.name}")
         if (cal / "params.yaml").is_file():
-            d = read_yaml(cal / "params.yaml")
-            rows = [dict(parameter=k, value=v.get("value"), std=v.get("std", ""), lower=v.get("lower"), upper=v.get("upper"),
-                         fixed=v.get("fixed"), unit=v.get("unit", "")) for k, v in d.get("parameters", {}).items()]
-            page.p(html.escape(str(d.get("equation", ""))))
-            page.table(rows, cal / "params.yaml")
+            _params_table(page, cal / "params.yaml")
         cv = cal / "cv.tsv"
         if cv.is_file():
             rows = read_tsv(cv)
@@ -186,8 +191,8 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
         if (diag / "model.yaml").is_file():
             d = read_yaml(diag / "model.yaml")
             page.p(f"Accepted effects: {', '.join(d.get('effects') or []) or 'none'}; unexplained residual: "
-                   f"{d.get('unexplained_residual')}.")
-            page.source(diag / "model.yaml")
+                   f"{d.get('unexplained_residual')}. The selected model {d.get('model')}:")
+            _params_table(page, diag / "model.yaml")
         page.tsv(diag / "before_after.tsv")
         page.tsv(diag / "ranking.tsv")
         for png in sorted(diag.glob("*.png")):

@@ -23,7 +23,7 @@
 - Adam, lr 1e-5, betas (0.9, 0.999), batch 10, weights ~ N(0, 0.02) (paper).
 
 Presets (``PRESETS``): "paper" is the paper's run (for a GPU: on a 2-core CPU one epoch
-would take about 2.6 h); "default" trains on two CPU cores in about 8 minutes; "ci" takes
+would take about 2.6 h); "default" trains on two CPU cores in 8 to 11 minutes; "ci" takes
 seconds. See ``PRESETS`` for the choices and ``benchmarks/bench_training.py`` for the
 measurements behind them.
 
@@ -76,10 +76,11 @@ PRESETS = {
     # Guan et al. 2022: 4,000 pairs at 512 x 512 (3,600 / 400), width 64, 200 epochs,
     # Adam lr 1e-5, batch 10. About 26 h on a GTX 1070 Ti in the paper: for a GPU.
     "paper": dict(),
-    # Two CPU cores, about 8 minutes of the 30-minute default run. Deliberate departures
-    # from the paper, with the measurements behind them (benchmarks/bench_training.py on a
-    # 2-core AMD EPYC, torch 2.13 CPU; "IoU" is the simulator's print of the master's mask
-    # vs the target on held-out pairs, next to the identity mask's):
+    # Two CPU cores, 8 to 11 minutes of the 30-minute default run (485 s on idle cores, 670 s
+    # in a full run). Deliberate departures from the paper, with the measurements behind
+    # them (benchmarks/bench_training.py on a 2-core AMD EPYC, torch 2.13 CPU; "IoU" is the
+    # simulator's print of the master's mask vs the target on held-out pairs, next to the
+    # identity mask's):
     # - 1,200 pairs (PRESET_PAIRS), 8 epochs (864 iterations of 10): 485 s wall on two idle
     #   cores (780 CPU s), including the per-epoch test losses and eval.tsv.
     # - Train at 256 x 256 (area-downsampled: the 512 field's sigma of ~4 px becomes ~2 px,
@@ -386,7 +387,7 @@ def train(
     out_dir,
     preset: str = "default",
     settings: dict | None = None,
-    resume: bool = True,
+    resume: bool | str = True,
     device=None,
     threads: int | None = None,
     progress: bool = True,
@@ -395,7 +396,10 @@ def train(
 
     ``settings`` override the preset's (keys of ``DEFAULTS``). With ``resume`` (the
     default) a checkpoint.pt in ``out_dir`` from the same settings and data is continued
-    (a larger ``epochs`` extends a finished run); otherwise training starts over.
+    (a larger ``epochs`` extends a finished run), and one from other settings or data is
+    an error (it may be someone's run); ``resume="matching"`` starts over instead (the
+    workflow: it reruns training exactly when the dataset or the settings changed);
+    ``resume=False`` always starts over.
     Returns a summary: settings, epochs run, seconds per epoch, final losses, eval rows.
     """
     from tqdm import tqdm
@@ -428,16 +432,18 @@ def train(
         opt_s = torch.optim.Adam(slave.parameters(), lr=s["lr"], betas=s["betas"])
         state = dict(epoch=0, iteration=0, log=[], seconds=[])
         ck = out / "checkpoint.pt"
-        if resume and ck.is_file():
-            c = torch.load(ck, map_location="cpu", weights_only=True)
+        c = torch.load(ck, map_location="cpu", weights_only=True) if resume and ck.is_file() else None
+        if c is not None:
             fixed = {k: v for k, v in s.items() if k not in _RESUMABLE}
             prev = {k: v for k, v in c["settings"].items() if k not in _RESUMABLE}
             if _plain(prev) != _plain(fixed) or _plain(c["dataset"]) != _plain(ident):
                 diff = sorted(k for k in set(prev) | set(fixed) if _plain(prev.get(k)) != _plain(fixed.get(k)))
-                raise ValueError(
-                    f"{ck}: the checkpoint is from other settings ({', '.join(diff) or 'dataset'}); "
-                    "remove it or train with --no-resume"
-                )
+                why = f"the checkpoint is from other settings ({', '.join(diff) or 'dataset'})"
+                if resume != "matching":
+                    raise ValueError(f"{ck}: {why}; remove it or train with --no-resume")
+                log.info("%s: %s; training starts over", ck, why)
+                c = None
+        if c is not None:
             master.load_state_dict(c["master"])
             slave.load_state_dict(c["slave"])
             opt_m.load_state_dict(c["opt_master"])

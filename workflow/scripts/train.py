@@ -2,8 +2,9 @@
 
 Snakemake deletes a directory output before a job reruns, so the training runs in a
 work folder beside it (``<results>/train/.work/<model>``) that keeps checkpoint.pt
-between attempts: an interrupted run resumes there (train() checks that the settings
-and the data are the same), and the finished folder is copied to the output.
+between attempts: an interrupted run resumes there, and the finished folder is copied
+to the output. A checkpoint from other settings or another dataset (the rule reruns
+because they changed, e.g. after a new print batch) is not resumed: training starts over.
 """
 
 import shutil
@@ -22,7 +23,7 @@ def main(snakemake):
     settings = {"seed": p.seed}
     if p.epochs:
         settings["epochs"] = p.epochs
-    r = train(snakemake.input.dataset, work, preset=p.preset, settings=settings, resume=True,
+    r = train(snakemake.input.dataset, work, preset=p.preset, settings=settings, resume="matching",
               threads=snakemake.threads, progress=False)
     shutil.copytree(work, out, dirs_exist_ok=True)
     ev = {row["method"]: row for row in r["eval"] if row["family"] == "all"}
