@@ -83,9 +83,21 @@ BENCHMARK_BATCH = _benchmark_batch()
 ALL_BATCHES = {**BATCHES, **BENCHMARK_BATCH}
 
 
+# The calibrated base model (Eq. 1) and the diagnosis's selected model (base + the
+# effects it accepted). As the {model} wildcard of augmentation, training and
+# compensation: the base model's name (eq1) or "selected".
+BASE_MODEL = config["calibration"]["model"]
+SELECTED = "selected"
+MODELS = {"base": BASE_MODEL, "selected": SELECTED}
+# The model that augmentation, training and compensation use (config 'model').
+MODEL = MODELS[config["model"]]
+# The other one: the benchmark compares its masks for the methods in benchmark.compare.
+OTHER = next(label for label in MODELS if label != config["model"])
+
+
 wildcard_constraints:
     batch="|".join(re.escape(name) for name in ALL_BATCHES),
-    model=f"{re.escape(config['calibration']['model'])}|selected",
+    model="|".join(re.escape(name) for name in MODELS.values()),
 
 
 def batch_folder(wildcards):
@@ -167,18 +179,6 @@ def design_files(wildcards=None):
 def registered_prints():
     """The registered prints the printer is calibrated on (not the benchmark's)."""
     return expand(f"{RESULTS}/prints/{{batch}}", batch=BATCHES)
-
-
-# The calibrated base model (Eq. 1) and the diagnosis's selected model (base + the
-# effects it accepted). As the {model} wildcard of augmentation, training and
-# compensation: the base model's name (eq1) or "selected".
-BASE_MODEL = config["calibration"]["model"]
-SELECTED = "selected"
-MODELS = {"base": BASE_MODEL, "selected": SELECTED}
-# The model that augmentation, training and compensation use (config 'model').
-MODEL = MODELS[config["model"]]
-# The other one: the benchmark compares its masks for the methods in benchmark.compare.
-OTHER = "selected" if config["model"] == "base" else "base"
 
 
 def calibrated_model():
