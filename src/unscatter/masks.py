@@ -1,8 +1,10 @@
-"""Mask families: the paper's trial masks and its augmentation masks.
+"""Mask families: the paper's trial masks, its augmentation masks, and test patterns.
 
 Guan et al. 2022, 'Trial data acquisition': 32 masks of three randomized families:
 random grayscale checkerboards, randomly positioned and sized rectangles, and randomly
-positioned circular shapes. Masks are 8-bit, 255 = 100 % dose.
+positioned circular shapes. The test patterns (gratings, Siemens stars, graded dots and
+lines, partial prints) are the prints registration is benchmarked on. Masks are 8-bit,
+255 = 100 % dose.
 """
 
 from __future__ import annotations
@@ -306,3 +308,275 @@ def augmentation_mask(family: str, seed: int, index: int, size: int = 512) -> np
         if m.max() > 0:
             return m
     return rectangles_varied(rng, size)
+
+
+# ------------------------------------------------------------------ test patterns
+#
+# Registration has to hold on any print a lab images, not only on the trial families it
+# was tuned on. The test patterns are the prints that are hard to register: gratings (a
+# shift by whole periods fits almost as well as the true pose), gratings cut off by the
+# field edge or truncated (only one end fixes the phase), Siemens stars (every spatial
+# frequency around one centre), isolated dots and lines of graded size (the smallest do
+# not print), and prints of which only part cures (a grey ramp; a whole pattern near the
+# cure threshold). The paper's three trial families are part of the set, so a benchmark
+# over the test patterns also covers what registration was tuned on.
+
+_ORIENTATIONS = (0.0, 90.0, 45.0, -45.0, None)  # None: a random angle
+
+
+def _test_dose(rng: np.random.Generator) -> int:
+    """Mostly full dose; sometimes a grey level that still prints in most labs."""
+    return 255 if rng.random() < 0.8 else int(rng.integers(170, 256))
+
+
+def _line_angle(rng: np.random.Generator, angle_deg=None) -> float:
+    """Direction of the lines from the x axis (degrees): 0, 90, +-45 or a random angle."""
+    if angle_deg is not None:
+        return float(angle_deg)
+    a = _ORIENTATIONS[int(rng.integers(len(_ORIENTATIONS)))]
+    return float(rng.uniform(-90.0, 90.0)) if a is None else a
+
+
+def _pitch(rng: np.random.Generator, lo: int = 3, hi: int = 30) -> int:
+    """A grating pitch in mask pixels, log-uniform: every octave of pitch equally often."""
+    return int(np.clip(np.round(np.exp(rng.uniform(np.log(lo), np.log(hi)))), lo, hi))
+
+
+def _line_width(pitch: int, duty: float) -> int:
+    """Line width of a grating: the duty cycle on whole pixels, never 0 or the full pitch."""
+    return int(np.clip(np.round(duty * pitch), 1, pitch - 1))
+
+
+def _window(rng: np.random.Generator, size: int, lo: float = 0.25, hi: float = 0.85):
+    """A random axis-aligned sub-window (r0, r1, c0, c1) of the field."""
+    h, w = (int(v) for v in rng.uniform(lo * size, hi * size, size=2))
+    r0, c0 = int(rng.integers(0, size - h + 1)), int(rng.integers(0, size - w + 1))
+    return r0, r0 + h, c0, c0 + w
+
+
+def _across(size: int, angle_deg: float) -> np.ndarray:
+    """The coordinate across lines that run at ``angle_deg`` from the x axis (pixels)."""
+    ax = np.arange(size, dtype=np.float64)
+    th = np.deg2rad(angle_deg)
+    return -np.sin(th) * ax[None, :] + np.cos(th) * ax[:, None]
+
+
+def grating_lines(size: int, pitch: float, width: float, angle_deg: float, phase: float = 0.0) -> np.ndarray:
+    """Boolean field of parallel lines: ``width`` px wide every ``pitch`` px, at ``angle_deg``
+    from the x axis (0: horizontal lines, 90: vertical). At 0 or 90 degrees with whole-pixel
+    pitch and width every period has exactly that many pixels on."""
+    return np.mod(_across(size, angle_deg) - phase, pitch) < width
+
+
+def grating(rng: np.random.Generator, size: int = 512, *, pitch=None, duty=None, angle_deg=None) -> np.ndarray:
+    """A line grating of 3 to 30 px pitch (duty cycle 0.3 to 0.7) over a random sub-window,
+    at 0, 90, +-45 degrees or a random angle."""
+    pitch = int(pitch) if pitch is not None else _pitch(rng)
+    width = _line_width(pitch, float(duty) if duty is not None else float(rng.uniform(0.3, 0.7)))
+    angle = _line_angle(rng, angle_deg)
+    r0, r1, c0, c1 = _window(rng, size)
+    on = grating_lines(size, pitch, width, angle, float(rng.integers(0, pitch)))
+    m = np.zeros((size, size), np.uint8)
+    m[r0:r1, c0:c1] = np.where(on[r0:r1, c0:c1], _test_dose(rng), 0)
+    return m
+
+
+def grating_cutoff(rng: np.random.Generator, size: int = 512, *, pitch=None, duty=None, angle_deg=None,
+                   variant=None) -> np.ndarray:
+    """A grating that breaks its period at one place only.
+
+    ``variant='edge'``: the grating runs to the edge of the mask field on one side, so the
+    print ends there with the field and not with a line. ``variant='truncated'``: lines at
+    0 or 90 degrees whose last line is cut short, so only that end differs from a shift by
+    whole periods.
+    """
+    variant = variant or ("edge", "truncated")[int(rng.integers(2))]
+    if variant == "edge":
+        pitch = int(pitch) if pitch is not None else _pitch(rng)
+        width = _line_width(pitch, float(duty) if duty is not None else float(rng.uniform(0.3, 0.7)))
+        angle = _line_angle(rng, angle_deg)
+        win = list(_window(rng, size))
+        side = int(rng.integers(4))  # top, bottom, left, right
+        win[side] = (0, size, 0, size)[side]
+        r0, r1, c0, c1 = win
+        on = grating_lines(size, pitch, width, angle, float(rng.integers(0, pitch)))
+        m = np.zeros((size, size), np.uint8)
+        m[r0:r1, c0:c1] = np.where(on[r0:r1, c0:c1], _test_dose(rng), 0)
+        return m
+    if variant != "truncated":
+        raise ValueError(f"variant must be 'edge' or 'truncated', not {variant!r}")
+    # horizontal lines from row r0, whole periods and then one line cut short; turned by 90
+    # degrees half of the time. At least 2 px lines so that a part of one can remain.
+    pitch = int(pitch) if pitch is not None else _pitch(rng, lo=4)
+    width = max(2, _line_width(pitch, float(duty) if duty is not None else float(rng.uniform(0.3, 0.7))))
+    angle = _line_angle(rng, angle_deg) if angle_deg is not None else (0.0, 90.0)[int(rng.integers(2))]
+    if angle not in (0.0, 90.0):
+        raise ValueError("a truncated grating runs at 0 or 90 degrees")
+    periods = max(3, int(rng.uniform(0.2, 0.8) * size / pitch))
+    periods = min(periods, (size - width) // pitch)
+    extent = periods * pitch + int(rng.integers(1, width))  # the last line keeps 1..width-1 px
+    r0 = int(rng.integers(0, size - extent + 1))
+    _, _, c0, c1 = _window(rng, size)
+    rows = np.arange(size)
+    on = (np.mod(rows - r0, pitch) < width) & (rows >= r0) & (rows < r0 + extent)
+    m = np.zeros((size, size), np.uint8)
+    m[np.ix_(on, np.arange(c0, c1))] = _test_dose(rng)
+    return np.ascontiguousarray(m.T) if angle == 90.0 else m
+
+
+def siemens_star(rng: np.random.Generator, size: int = 512, *, spokes=None) -> np.ndarray:
+    """A Siemens star of 8 to 36 spokes: every pitch from the rim down to where the
+    spokes merge at the centre; sometimes with a small open centre."""
+    n = int(spokes) if spokes is not None else int(rng.integers(8, 37))
+    radius = float(rng.uniform(0.12, 0.45)) * size
+    cy, cx = (float(v) for v in rng.uniform(radius + 2, size - radius - 2, size=2))
+    ax = np.arange(size, dtype=np.float64)
+    dy, dx = ax[:, None] - cy, ax[None, :] - cx
+    r = np.hypot(dy, dx)
+    phi = np.arctan2(dy, dx) + float(rng.uniform(0, 2 * np.pi))
+    star = (r <= radius) & (np.mod(phi * n / (2 * np.pi), 1.0) < 0.5)
+    if rng.random() < 0.3:
+        star &= r >= float(rng.uniform(0.03, 0.12)) * radius
+    return np.where(star, _test_dose(rng), 0).astype(np.uint8)
+
+
+def _graded_sizes(rng: np.random.Generator, lo: int = 1, hi: int = 20) -> np.ndarray:
+    """6 to 10 sizes from ``lo`` to ``hi`` px, geometric steps (both ends always present)."""
+    return np.unique(np.round(np.geomspace(lo, hi, int(rng.integers(6, 11))))).astype(int)
+
+
+def dots(rng: np.random.Generator, size: int = 512) -> np.ndarray:
+    """Isolated dots of graded diameter (1 to 20 px) on a grid: diameter grows along the
+    rows (or the columns), 1 to 4 repeats; at least 25 px between the largest dots."""
+    d = _graded_sizes(rng)
+    if rng.random() < 0.5:
+        d = d[::-1]
+    cell = int(min(rng.integers(45, 65), (size - 16) // len(d)))
+    reps = int(rng.integers(1, 5))
+    gw, gh = len(d) * cell, reps * cell
+    x0 = int(rng.integers(8, size - gw - 8 + 1)) + cell // 2
+    y0 = int(rng.integers(8, size - gh - 8 + 1)) + cell // 2
+    ax = np.arange(size, dtype=np.float64)
+    j = np.clip(np.round((ax - x0) / cell).astype(int), 0, len(d) - 1)  # nearest grid column
+    i = np.clip(np.round((ax - y0) / cell).astype(int), 0, reps - 1)
+    diam = d[j][None, :].astype(np.float64)
+    # even diameters are centred between pixels, so a dot of d px is d px across
+    cx = (x0 + j * cell)[None, :] + 0.5 * (diam % 2 == 0)
+    cy = (y0 + i * cell)[:, None] + 0.5 * (diam % 2 == 0)
+    on = (ax[None, :] - cx) ** 2 + (ax[:, None] - cy) ** 2 <= (diam / 2) ** 2
+    m = np.where(on, _test_dose(rng), 0).astype(np.uint8)
+    return np.ascontiguousarray(m.T) if rng.random() < 0.5 else m
+
+
+def lines(rng: np.random.Generator, size: int = 512, *, angle_deg=None) -> np.ndarray:
+    """Isolated parallel lines of graded width (1 to 20 px), 24 to 40 px apart, at 0, 90,
+    +-45 degrees or a random angle; the set is kept inside the field at any angle."""
+    w = _graded_sizes(rng)
+    if rng.random() < 0.5:
+        w = w[::-1]
+    gap = int(rng.integers(24, 41))
+    left = np.concatenate([[0], np.cumsum(w[:-1] + gap)]).astype(np.float64)  # left edge of each line
+    across = float(left[-1] + w[-1])
+    angle = _line_angle(rng, angle_deg)
+    c, s = abs(np.cos(np.deg2rad(angle))), abs(np.sin(np.deg2rad(angle)))
+    # half-extent of the set along x and y: (c L + s A) / 2 and (s L + c A) / 2 must stay
+    # within the field, 8 px margin
+    room = size / 2 - 8
+    lmax = min((2 * room - s * across) / c if c > 1e-9 else np.inf, (2 * room - c * across) / s if s > 1e-9 else np.inf)
+    length = float(min(rng.uniform(0.3, 0.85) * size, lmax))
+    hx, hy = (c * length + s * across) / 2, (s * length + c * across) / 2
+    xc = float(rng.uniform(hx + 8, size - hx - 8)) if size - 2 * hx > 16 else size / 2
+    yc = float(rng.uniform(hy + 8, size - hy - 8)) if size - 2 * hy > 16 else size / 2
+    xc, yc = np.round(xc), np.round(yc)
+    ax = np.arange(size, dtype=np.float64)
+    th = np.deg2rad(angle)
+    X, Y = ax[None, :] - xc, ax[:, None] - yc
+    along = np.cos(th) * X + np.sin(th) * Y
+    u = _across(size, angle) - (-np.sin(th) * xc + np.cos(th) * yc) + np.round(across / 2)
+    idx = np.clip(np.searchsorted(left, u, side="right") - 1, 0, len(w) - 1)  # the line to the left
+    on = (u >= 0) & (u - left[idx] < w[idx]) & (np.abs(along) <= length / 2)
+    return np.where(on, _test_dose(rng), 0).astype(np.uint8)
+
+
+def _solid_base(rng: np.random.Generator, size: int, kinds) -> np.ndarray:
+    """A pattern of relative dose in [0, 1] to be given a grey level: a block, one of the
+    trial families, a grating of 10 px pitch or more, or a Siemens star."""
+    kind = kinds[int(rng.integers(len(kinds)))]
+    if kind == "block":
+        r0, r1, c0, c1 = _window(rng, size, 0.3, 0.9)
+        b = np.zeros((size, size))
+        b[r0:r1, c0:c1] = 1.0
+        return b
+    if kind == "grating":
+        return grating(rng, size, pitch=_pitch(rng, lo=10)) > 0
+    gen = siemens_star if kind == "siemens_star" else FAMILIES[kind]
+    return gen(rng, size) > 0
+
+
+def partial(rng: np.random.Generator, size: int = 512) -> np.ndarray:
+    """A pattern under a grey ramp: full dose (200 to 255) at one end of the pattern, 20 to
+    90 at the other, so the print ends where the dose falls below the cure threshold
+    (where depends on the lab) and the rest of the mask never prints."""
+    base = _solid_base(rng, size, ("block", "rectangles", "circles", "checkerboard", "grating"))
+    hi, lo = float(rng.uniform(200, 255)), float(rng.uniform(20, 90))
+    th = float(rng.uniform(0, 2 * np.pi))
+    t = _across(size, np.rad2deg(th))
+    on = t[base > 0]
+    t = np.clip((t - on.min()) / max(on.max() - on.min(), 1.0), 0, 1)  # 0..1 across the pattern
+    return np.round(base * (hi + (lo - hi) * t)).astype(np.uint8)
+
+
+def near_threshold(rng: np.random.Generator, size: int = 512) -> np.ndarray:
+    """A whole pattern at one grey level of 90 to 150 (dose 0.35 to 0.59 of full): near
+    the cure threshold, so the print is thin, partial or absent depending on the lab and
+    on the illumination field."""
+    base = _solid_base(rng, size, ("block", "rectangles", "circles", "checkerboard", "grating", "siemens_star"))
+    return np.where(base > 0, int(rng.integers(90, 151)), 0).astype(np.uint8)
+
+
+TEST_PATTERNS = {
+    **FAMILIES,
+    "grating": grating,
+    "grating_cutoff": grating_cutoff,
+    "siemens_star": siemens_star,
+    "dots": dots,
+    "lines": lines,
+    "partial": partial,
+    "near_threshold": near_threshold,
+}
+
+
+def test_pattern_of(mask_id: str) -> str:
+    """The pattern of a test mask id such as ``grating_cutoff_012``."""
+    return mask_id.rsplit("_", 1)[0]
+
+
+def test_pattern_masks(count: int, seed: int = 0, size: int = 512, patterns=None) -> dict:
+    """``count`` test masks, id ``<pattern>_<index>`` -> uint8 mask.
+
+    Patterns are drawn in shuffled rounds: each run of ``len(patterns)`` consecutive masks
+    holds every pattern once, in a random order, so any set at least that large covers
+    them all. Mask i depends only on (seed, i), so a larger count extends a smaller one.
+    """
+    names = list(patterns) if patterns is not None else list(TEST_PATTERNS)
+    unknown = [p for p in names if p not in TEST_PATTERNS]
+    if unknown or not names:
+        raise ValueError(f"unknown test patterns {unknown}; known: {list(TEST_PATTERNS)}")
+    if count < 1:
+        raise ValueError("count must be at least 1")
+    out = {}
+    for i in range(count):
+        order = np.random.default_rng([seed, 0x7E5, i // len(names)]).permutation(len(names))
+        name = names[order[i % len(names)]]
+        rng = np.random.default_rng([seed, 0x7E57, i])
+        for _ in range(8):  # never hand the lab an empty mask
+            m = TEST_PATTERNS[name](rng, size)
+            if m.max() > 0:
+                break
+        else:
+            m = rectangles(rng, size)
+        out[f"{name}_{i:03d}"] = m
+    return out
+
+
+test_pattern_of.__test__ = test_pattern_masks.__test__ = False  # library functions, not pytest tests
