@@ -111,3 +111,50 @@ def test_print_job_exposures(tmp_path):
     (tmp_path / "other.tsv").write_text("id\texposure\nzz\t1.1\n")
     with pytest.raises(InputError, match="not here: zz"):
         print_batch(tmp_path / "m", tmp_path / "batch2", exposures=read_job(tmp_path / "other.tsv"), progress=False)
+
+
+# ------------------------------------------------------------ microscope effects
+
+def _image(cfg, density=None, seed=0):
+    from unscatter.lab.microscope import image_print
+
+    rho = np.zeros((96, 96)) if density is None else density
+    pose = dict(rotation_deg=0.0, scale=1.0, shift_x=0.0, shift_y=0.0)
+    return image_print(rho, 16, 64, cfg, np.random.default_rng(seed), pose=pose)[0].astype(float)
+
+
+def test_new_microscope_effects_are_off_by_default():
+    """haze, background_tilt and staining: the default lab's images are those of the lab
+    before these keys existed (same random stream, same pixels)."""
+    mic = load_config()["microscope"]
+    assert mic["haze"] is None and mic["background_tilt"] == 0 and mic["staining"] is None
+    mic = dict(mic, image_size=[96, 96])
+    old = {k: v for k, v in mic.items() if k not in ("haze", "background_tilt", "staining")}
+    zeros = dict(mic, haze={"fraction": 0.0, "sigma_px": 20.0}, staining={"variation": 0.0, "length_px": 50.0})
+    rho = np.zeros((96, 96))
+    rho[30:60, 40:50] = 0.9
+    ref = _image(old, rho)
+    assert np.array_equal(_image(mic, rho), ref) and np.array_equal(_image(zeros, rho), ref)
+
+
+def test_new_microscope_effects_do_what_they_say():
+    bright = dict(load_config()["microscope"], image_size=[96, 96], photons=1e6, read_noise_e=0.0, lamp_jitter=0.0,
+                  vignetting=[0.0, 0.0], background=0.2, blur_px=[0.5, 0.5], offset_adu=0, adu_per_e=0.05)
+    blocks = lambda img: img.reshape(8, 12, 8, 12).mean(axis=(1, 3))  # noqa: E731
+    # a tilted background: corner to corner by the tilt's share, no polymer needed
+    b = blocks(_image(dict(bright, background_tilt=0.4)))
+    assert 0.25 < (b.max() - b.min()) / b.mean() < 0.42
+    assert (lambda f: (f.max() - f.min()) / f.mean())(blocks(_image(bright))) < 0.01
+    # haze: a small print glows into the background around it
+    rho = np.zeros((96, 96))
+    rho[40:56, 40:56] = 1.0
+    dim = dict(bright, background=0.05)
+    plain, hazy = _image(dim, rho), _image(dict(dim, haze={"fraction": 0.2, "sigma_px": 15.0}), rho)
+    assert hazy[16:30, 16:30].mean() > 1.03 * plain[16:30, 16:30].mean()
+    assert hazy[40:56, 40:56].mean() < 0.95 * plain[40:56, 40:56].mean()
+    # staining: uneven polymer signal, the background alone untouched on average
+    rho = np.ones((96, 96))
+    st = dict(bright, staining={"variation": 0.2, "length_px": 40.0})
+    spread = lambda img: blocks(img).std() / blocks(img).mean()  # noqa: E731
+    assert spread(_image(bright, rho)) < 0.01 and spread(_image(st, rho)) > 0.05
+    assert abs(_image(st).mean() / _image(bright).mean() - 1) < 0.01

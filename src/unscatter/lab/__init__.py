@@ -5,7 +5,8 @@ besides a quadratic illumination field, a Gaussian scattering kernel and a cure
 threshold it has cell-to-cell dose randomness, a saturating polymer density, and
 effects that Eq. 1 lacks (heavy-tailed scattering by default; anisotropy, grey-level
 dose nonlinearity, illumination beyond quadratic and post-wash swelling/erosion can be
-switched on in its config).
+switched on in its config). Its microscope can add haze, a tilted background and uneven
+staining, off by default.
 
 Nothing outside ``unscatter.lab`` and its tests may import it or read its config:
 calibration, diagnosis and compensation see only the files a real lab would hand over.
