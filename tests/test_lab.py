@@ -113,7 +113,80 @@ def test_print_job_exposures(tmp_path):
         print_batch(tmp_path / "m", tmp_path / "batch2", exposures=read_job(tmp_path / "other.tsv"), progress=False)
 
 
-# ------------------------------------------------------------ microscope effects
+# ------------------------------------------------------------------ randomised labs
+
+
+def _known_keys(over: dict, base: dict, path=""):
+    """Every key an override sets exists in the lab's default config (no silent typos)."""
+    for k, v in over.items():
+        assert k in base, f"unknown lab key {path}{k}"
+        if isinstance(v, dict) and isinstance(base[k], dict):
+            _known_keys(v, base[k], f"{path}{k}.")
+
+
+def test_random_labs_stay_in_their_ranges():
+    from unscatter.lab.random import MARGIN_PX, RANGES, field_extent_px, random_lab
+
+    default = load_config()
+    seen_formats, seen_effects = set(), set()
+    for s in range(200):
+        over = random_lab(np.random.default_rng(s))
+        _known_keys(over, default)
+        cfg = load_config(overrides=over)
+        m, p = cfg["microscope"], cfg["printer"]
+        within = lambda key, v: RANGES[key][0] - 1e-9 <= v <= RANGES[key][1] + 1e-9  # noqa: E731
+        assert within("rotation_deg", m["rotation_deg"])
+        assert RANGES["scale"][0] <= m["scale"][0] <= m["scale"][1] <= RANGES["scale"][1]
+        assert all(within("image_px", v) for v in m["image_size"])
+        # the whole design field fits the image at the largest scale and rotation
+        assert min(m["image_size"]) >= field_extent_px(m["scale"][1], m["rotation_deg"]) + 2 * MARGIN_PX - 0.5
+        assert within("blur_px", m["blur_px"][0]) and within("blur_px", m["blur_px"][1]) and m["blur_px"][0] <= m["blur_px"][1]
+        assert 0 <= m["vignetting"][0] <= m["vignetting"][1] <= RANGES["vignetting"][1]
+        for key in ("background", "photons", "read_noise_e", "offset_adu", "lamp_jitter", "background_tilt"):
+            assert within(key, m[key]), key
+        assert m["format"] in ("tif16", "png8") and isinstance(m["declare_offset"], bool)
+        # the brightest expected pixel stays below the camera's maximum
+        assert m["offset_adu"] + m["adu_per_e"] * m["photons"] * (1 + m["background"]) * (1 + 3 * m["lamp_jitter"]) < 65535
+        if m["haze"]:
+            assert within("haze_fraction", m["haze"]["fraction"]) and within("haze_sigma_px", m["haze"]["sigma_px"])
+            seen_effects.add("haze")
+        if m["staining"]:
+            assert within("staining", m["staining"]["variation"]) and within("staining_length_px", m["staining"]["length_px"])
+            seen_effects.add("staining")
+        if m["background_tilt"]:
+            seen_effects.add("tilt")
+        k = p["kernel"]
+        assert within("sigma_um", k["sigma_um"]) and within("anisotropy", k["anisotropy"]["ratio"])
+        assert within("tail_fraction", k["heavy_tail"]["fraction"]) and within("tail_length_um", k["heavy_tail"]["length_um"])
+        assert within("threshold", p["cure"]["threshold"]) and 0 < p["cure"]["gel_dose"] < p["cure"]["threshold"]
+        assert within("edge_offset_um", p["edge_offset_um"]) and within("dose_noise", p["cells"]["dose_noise"])
+        hs = p["illumination"]["hotspot"]
+        if hs:
+            assert within("hotspot_amplitude", hs["amplitude"]) and within("hotspot_width", hs["width"])
+        seen_formats.add(m["format"])
+    assert seen_formats == {"tif16", "png8"} and seen_effects == {"haze", "staining", "tilt"}
+
+
+def test_print_batch_takes_a_random_lab(tmp_path):
+    from unscatter import masks
+    from unscatter.io import read_image_raw, write_png
+    from unscatter.lab import print_batch, random_lab
+
+    for mid, m in masks.test_pattern_masks(2, seed=0, patterns=["grating", "siemens_star"]).items():
+        write_png(tmp_path / "m" / f"{mid}.png", m)
+    over = random_lab(np.random.default_rng(7))
+    over["microscope"].update(format="png8", haze={"fraction": 0.2, "sigma_px": 30.0}, background_tilt=0.4,
+                              staining={"variation": 0.2, "length_px": 100.0})
+    rows = print_batch(tmp_path / "m", tmp_path / "b", overrides=over, seed=3, progress=False)
+    b = open_batch(tmp_path / "b")
+    H, W = over["microscope"]["image_size"]
+    for r in rows:
+        img = read_image_raw(b.images[r["id"]])
+        assert img.dtype == np.uint8 and img.shape == (H, W) and img.max() < 255
+        M = np.array([[r["m00"], r["m01"], r["m02"]], [r["m10"], r["m11"], r["m12"]]])
+        corners = M[:, :2] @ np.array([[0, 511, 0, 511], [0, 0, 511, 511]], float) + M[:, 2:]
+        assert corners.min() >= 0 and corners[0].max() <= W - 1 and corners[1].max() <= H - 1  # the field in view
+
 
 def _image(cfg, density=None, seed=0):
     from unscatter.lab.microscope import image_print

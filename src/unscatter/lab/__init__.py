@@ -6,7 +6,8 @@ threshold it has cell-to-cell dose randomness, a saturating polymer density, and
 effects that Eq. 1 lacks (heavy-tailed scattering by default; anisotropy, grey-level
 dose nonlinearity, illumination beyond quadratic and post-wash swelling/erosion can be
 switched on in its config). Its microscope can add haze, a tilted background and uneven
-staining, off by default.
+staining, off by default. ``random_lab`` (``unscatter.lab.random``) draws whole labs
+over wide ranges, to test registration on labs it was never tuned to.
 
 Nothing outside ``unscatter.lab`` and its tests may import it or read its config:
 calibration, diagnosis and compensation see only the files a real lab would hand over.
@@ -22,8 +23,10 @@ import yaml
 
 from .microscope import image_print
 from .printer import Printer, polymer_density
+from .random import describe_lab, random_lab
 
-__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch", "read_job"]
+__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch", "read_job", "random_lab",
+           "describe_lab"]
 
 
 def default_config() -> dict:
