@@ -1,29 +1,72 @@
 """Registration accuracy and speed against the virtual lab's truth.
 
-    python benchmarks/bench_registration.py [--count 32] [--seed 3] [--out benchmarks/out/registration]
+One lab (the default lab, or the default with a lab config's overrides), trial masks:
 
-Prints per-print transform error (RMS over the mask field, mask pixels), IoU of the
+    python benchmarks/bench_registration.py [--count 32] [--seed 3] [--out benchmarks/out/registration] [--lab-config FILE]
+
+prints per-print transform error (RMS over the mask field, mask pixels), IoU of the
 registered print vs the lab's noise-free print, the mean over non-empty prints, and the
 wall time of registering the batch. The IoU a perfect registration would reach (the
 true transform, same thresholding) is printed beside it.
+
+Randomised labs, test patterns:
+
+    python benchmarks/bench_registration.py --labs N [--prints 32] [--seed S] [--out benchmarks/out/registration_labs]
+
+draws N labs with ``unscatter.lab.random_lab`` (optics, camera, export, printer and
+microscope effects over wide ranges), prints ``--prints`` test masks on each (all test
+patterns of ``unscatter.masks.TEST_PATTERNS``, the paper's families included), registers
+each batch as the workflow does (skipping failed prints) and scores every print against
+the lab's truth. Without ``--seed`` each run draws new labs; the seed it drew is printed
+and ``--seed S`` repeats the run. Labs run one after another (registration itself uses
+the two cores). Writes ``prints.tsv`` (one row per print), ``labs.yaml`` (each lab's
+config overrides), ``summary.txt`` (what is printed) and ``worst.png`` (the overlays of
+the worst prints) under ``--out``.
+
+A print is *silently wrong* when registration reports it ``ok`` with a pose error above
+1.5 mask px, or ``empty`` although the lab's noise-free print has more than 0.05 % of
+the field solid (131 mask px, a dot of 13 px across; registration's own empty test
+counts 30 px). A ``failed`` print is not silently wrong: QC said so.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
 from unscatter.imaging import Settings, correct_image, threshold_print, transform_rms_px
-from unscatter.io import read_print, read_tsv, read_yaml
+from unscatter.io import read_print, read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.metrics import iou
+
+SILENT_POSE_PX = 1.5  # an 'ok' print whose pose is off by more is silently wrong
+SILENT_EMPTY_SOLID = 0.0005  # an 'empty' print whose truth has more solid is silently wrong
+TARGETS = dict(silently_wrong=0, failed_pct=1.0, median_pose_px=0.5, iou_gap=0.01, seconds_per_32=30.0)
+
+
+def _matrix(row: dict, prefix: str = "m"):
+    """The 2x3 design->image matrix of a qc.tsv or transforms.tsv row, or None."""
+    try:
+        return np.array([[float(row[f"{prefix}{a}{b}"]) for b in range(3)] for a in range(2)])
+    except (KeyError, TypeError, ValueError):
+        return None
+
+
+def _float(v, default=float("nan")) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return default
 
 
 def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
-    """Per print: transform error, IoU as registered, and IoU with the true transform
-    (a perfect registration of the same image, same flat field and threshold)."""
+    """Per print: status, QC reason, transform error (wherever qc.tsv has a matrix, failed
+    prints included), IoU as registered (ok and empty prints), and IoU with the true
+    transform (a perfect registration of the same image, same flat field and threshold)."""
     qc = {r["id"]: r for r in read_tsv(reg_dir / "qc.tsv")}
     offset = float(read_yaml(reg_dir / "batch.yaml").get("camera_offset_adu", 0) or 0)
     truth = {r["id"]: r for r in read_tsv(truth_dir / "transforms.tsv")}
@@ -31,40 +74,48 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
     for mid, t in truth.items():
         q = qc[mid]
         tp = read_print(truth_dir / "prints" / f"{mid}.png")
-        row = dict(id=mid, status=q["status"], truth_solid=float(tp.mean()))
-        if q["status"] == "ok":
-            Mt = np.array([[float(t[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
-            Me = np.array([[float(q[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
+        row = dict(id=mid, status=q["status"], reason=q.get("reason", ""), truth_solid=float(tp.mean()),
+                   true_rotation_deg=_float(t["rotation_deg"]), true_scale=_float(t["scale"]),
+                   rotation_deg=_float(q.get("rotation_deg")), scale=_float(q.get("scale")), score=_float(q.get("score")))
+        Mt, Me = _matrix(t), _matrix(q)
+        if Me is not None:
             row["rms_px"] = transform_rms_px(Me, Mt, size)
+        thr = _float(q.get("threshold"))
+        if np.isfinite(thr):
             k = correct_image(mid, Path(q["image"]), offset, Settings(), q["flatfield"])
-            row["iou_perfect"] = iou(threshold_print(k.c, Mt, float(q["threshold"]), size)[1], tp)
+            row["iou_perfect"] = iou(threshold_print(k.c, Mt, thr, size)[1], tp)
         if q["status"] in ("ok", "empty"):
             row["iou"] = iou(read_print(reg_dir / f"{mid}.png"), tp)
         out.append(row)
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--count", type=int, default=32)
-    ap.add_argument("--seed", type=int, default=3)
-    ap.add_argument("--out", type=Path, default=Path("benchmarks/out/registration"))
-    ap.add_argument("--lab-config", type=Path)
-    a = ap.parse_args()
+def silently_wrong(r: dict) -> bool:
+    if r["status"] == "ok":
+        return r.get("rms_px", np.inf) > SILENT_POSE_PX
+    return r["status"] == "empty" and r["truth_solid"] > SILENT_EMPTY_SOLID
+
+
+# ------------------------------------------------------------------ one lab
+
+
+def single_lab(a) -> None:
     from unscatter.imaging import register_batch
     from unscatter.lab import print_batch
     from unscatter.masks import write_trial_masks
 
-    write_trial_masks(a.out / "masks", a.count, seed=a.seed)
-    print_batch(a.out / "masks", a.out / "batch", lab_config=a.lab_config, seed=a.seed, progress=False)
+    seed = 3 if a.seed is None else a.seed
+    out = a.out or Path("benchmarks/out/registration")
+    write_trial_masks(out / "masks", a.count, seed=seed)
+    print_batch(out / "masks", out / "batch", lab_config=a.lab_config, seed=seed, progress=False)
     t0 = time.perf_counter()
-    register_batch(a.out / "batch", a.out / "reg", skip_failed=True)
+    register_batch(out / "batch", out / "reg", skip_failed=True)
     dt = time.perf_counter() - t0
-    rows = evaluate(a.out / "reg", a.out / "batch.truth")
+    rows = evaluate(out / "reg", out / "batch.truth")
     for r in rows:
         print(f"{r['id']}  {r['status']:6s}  rms {r.get('rms_px', float('nan')):6.3f} px  IoU {r.get('iou', float('nan')):.4f}"
               f" (perfect registration {r.get('iou_perfect', float('nan')):.4f})  solid {r['truth_solid']:.3f}")
-    ok = [r for r in rows if "rms_px" in r]
+    ok = [r for r in rows if r["status"] == "ok"]
     ne = [r for r in rows if r["truth_solid"] > 0 and "iou" in r]
     print(f"registered {len(rows)} images in {dt:.1f} s ({dt / len(rows):.2f} s each)")
     print(f"transform RMS over the mask field: mean {np.mean([r['rms_px'] for r in ok]):.3f} px, max {np.max([r['rms_px'] for r in ok]):.3f} px")
@@ -73,6 +124,182 @@ def main():
     print(f"IoU with the true transform (same images, same threshold): mean {np.mean(perf):.4f}")
     print(f"empty: {sum(r['status'] == 'empty' for r in rows)} (truth empty: {sum(r['truth_solid'] == 0 for r in rows)})")
     print(f"failed: {sum(r['status'] == 'failed' for r in rows)}")
+
+
+# ------------------------------------------------------------ randomised labs
+
+
+def _substream(seed: int, lab: int, what: int) -> int:
+    """An independent integer seed for one purpose (masks, lab noise) of one lab."""
+    return int(np.random.SeedSequence([seed, lab, what]).generate_state(1)[0])
+
+
+def run_lab(i: int, seed: int, prints: int, root: Path) -> tuple[dict, list[dict]]:
+    """Draw lab ``i``, print test masks on it, register, score. Returns (lab, print rows)."""
+    from unscatter.imaging import register_batch
+    from unscatter.lab import print_batch, random_lab
+    from unscatter.masks import test_pattern_masks, test_pattern_of
+
+    over = random_lab(np.random.default_rng([seed, i, 0]))
+    d = root / f"lab_{i:02d}"
+    if d.exists():
+        shutil.rmtree(d)
+    for mid, m in test_pattern_masks(prints, seed=_substream(seed, i, 1)).items():
+        write_png(d / "masks" / f"{mid}.png", m)
+    t0 = time.perf_counter()
+    print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 2), progress=False)
+    t_print = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    register_batch(d / "batch", d / "reg", skip_failed=True, progress=False)
+    t_reg = time.perf_counter() - t0
+    rows = evaluate(d / "reg", d / "batch.truth")
+    for r in rows:
+        r.update(lab=i, pattern=test_pattern_of(r["id"]), silently_wrong=int(silently_wrong(r)))
+    lab = dict(index=i, overrides=over, register_s=t_reg, print_s=t_print, n=len(rows),
+               image_size=tuple(over["microscope"]["image_size"]))
+    return lab, rows
+
+
+def _fmt(v, spec=".3f") -> str:
+    return "-" if v is None or (isinstance(v, float) and not np.isfinite(v)) else format(v, spec)
+
+
+def _median(v):
+    return float(np.median(v)) if len(v) else float("nan")
+
+
+def lab_line(lab: dict, rows: list[dict]) -> str:
+    from unscatter.lab import describe_lab
+
+    err = [r["rms_px"] for r in rows if r["status"] == "ok"]
+    scored = [r for r in rows if "iou" in r and r["truth_solid"] > 0]
+    H, W = lab["image_size"]
+    return (f"lab {lab['index']}: {describe_lab(lab['overrides'])}\n"
+            f"    failed {sum(r['status'] == 'failed' for r in rows)}/{len(rows)}, "
+            f"empty {sum(r['status'] == 'empty' for r in rows)}, "
+            f"silently wrong {sum(r['silently_wrong'] for r in rows)}, "
+            f"pose error median {_fmt(_median(err))} max {_fmt(max(err) if err else float('nan'))} px, "
+            f"IoU {_fmt(np.mean([r['iou'] for r in scored]) if scored else float('nan'), '.4f')} "
+            f"(perfect {_fmt(np.mean([r['iou_perfect'] for r in scored if 'iou_perfect' in r]) if scored else float('nan'), '.4f')}), "
+            f"registration {lab['register_s']:.1f} s for {lab['n']} prints of {H}x{W}")
+
+
+def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
+    n = len(rows)
+    failed = [r for r in rows if r["status"] == "failed"]
+    silent = [r for r in rows if r["silently_wrong"]]
+    ok_err = np.array([r["rms_px"] for r in rows if r["status"] == "ok"])
+    scored = [r for r in rows if "iou" in r and r["truth_solid"] > 0]
+    mean_iou = float(np.mean([r["iou"] for r in scored])) if scored else float("nan")
+    mean_perf = float(np.mean([r["iou_perfect"] for r in scored if "iou_perfect" in r])) if scored else float("nan")
+    per32 = np.array([lab["register_s"] * 32 / lab["n"] for lab in labs])
+    mpx = np.array([lab["image_size"][0] * lab["image_size"][1] for lab in labs]) / 720**2
+    med_err = _median(ok_err)
+    L = [f"seed {seed}: {len(labs)} random labs x {n // max(len(labs), 1)} test prints  ({cmd})", ""]
+    L += [lab_line(lab, [r for r in rows if r["lab"] == lab["index"]]) for lab in labs]
+    L += ["", f"  {'totals':30s}{'measured':32s}{'target':24s}"]
+
+    def line(name, measured, target, met):
+        L.append(f"  {name:30s}{measured:32s}{target:24s}{'met' if met else 'NOT MET'}")
+
+    line("silently wrong", f"{len(silent)} of {n}", f"{TARGETS['silently_wrong']}", len(silent) <= TARGETS["silently_wrong"])
+    line("failed", f"{len(failed)} of {n} ({100 * len(failed) / n:.1f} %)", f"<= {TARGETS['failed_pct']:g} %",
+         100 * len(failed) / n <= TARGETS["failed_pct"])
+    line("pose error of ok prints", f"median {_fmt(med_err)}, p95 {_fmt(float(np.quantile(ok_err, 0.95)) if len(ok_err) else float('nan'))} px",
+         f"median <= {TARGETS['median_pose_px']:g} px", med_err <= TARGETS["median_pose_px"])
+    line("mean IoU (perfect reg.)", f"{mean_iou:.4f} ({mean_perf:.4f})", f"gap <= {TARGETS['iou_gap']:g}",
+         mean_perf - mean_iou <= TARGETS["iou_gap"])
+    line("registration s / 32 prints", f"median {np.median(per32):.1f}, max {per32.max():.1f}",
+         f"<= {TARGETS['seconds_per_32']:g} (720x720)", float(np.max(per32 / mpx)) <= TARGETS["seconds_per_32"])
+    L.append(f"  (images of {', '.join(f'{h}x{w}' for h, w in (lab['image_size'] for lab in labs))}; judged on the time "
+             f"scaled to 720x720 by pixel count: median {np.median(per32 / mpx):.1f} s, max {np.max(per32 / mpx):.1f} s)")
+    L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
+    L += ["", f"silently wrong ({len(silent)}): ok with pose error > {SILENT_POSE_PX} px, or empty with truth solid > {SILENT_EMPTY_SOLID}"]
+    for r in sorted(silent, key=lambda r: -r.get("rms_px", 0)):
+        L.append(f"  lab {r['lab']}  {r['id']:22s} {r['pattern']:15s} {r['status']:6s} pose error {_fmt(r.get('rms_px'), '.2f')} px  "
+                 f"IoU {_fmt(r.get('iou'), '.3f')} (perfect {_fmt(r.get('iou_perfect'), '.3f')})  truth solid {r['truth_solid']:.4f}")
+    L += ["", f"failed ({len(failed)}):"]
+    for r in failed:
+        L.append(f"  lab {r['lab']}  {r['id']:22s} {r['pattern']:15s} pose error {_fmt(r.get('rms_px'), '.2f')} px  {r['reason']}")
+    L += ["", f"  {'per pattern':15s} {'n':>3s} {'failed':>7s} {'empty':>6s} {'silently wrong':>15s} {'median pose error (ok)':>26s}  mean IoU (perfect)"]
+    for pat in sorted({r["pattern"] for r in rows}):
+        rr = [r for r in rows if r["pattern"] == pat]
+        e = [r["rms_px"] for r in rr if r["status"] == "ok"]
+        sc = [r for r in rr if "iou" in r and r["truth_solid"] > 0]
+        perf = [r["iou_perfect"] for r in sc if "iou_perfect" in r]
+        L.append(f"  {pat:15s} {len(rr):3d} {sum(r['status'] == 'failed' for r in rr):7d} {sum(r['status'] == 'empty' for r in rr):6d}"
+                 f" {sum(r['silently_wrong'] for r in rr):15d} {_fmt(_median(e)):>23s} px"
+                 f"  {_fmt(float(np.mean([r['iou'] for r in sc])) if sc else float('nan'), '.4f')}"
+                 f" ({_fmt(float(np.mean(perf)) if perf else float('nan'), '.4f')})")
+    return "\n".join(L)
+
+
+def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 16, thumb: int = 256, cols: int = 4) -> None:
+    """The overlays of the worst prints, labelled: silently wrong first, then failed, then
+    the largest pose errors (red: registered mask contour, green: thresholded print)."""
+    from PIL import Image, ImageDraw
+
+    def rank(r):
+        cat = 0 if r["silently_wrong"] else 1 if r["status"] == "failed" else 2
+        return cat, -r.get("rms_px", -1.0)
+
+    pick = [r for r in sorted(rows, key=rank) if (root / f"lab_{r['lab']:02d}" / "reg" / "overlays" / f"{r['id']}.png").is_file()][:count]
+    head = 40
+    ncols = min(cols, max(len(pick), 1))
+    nrows = max(1, (len(pick) + ncols - 1) // ncols)
+    sheet = Image.new("RGB", (ncols * thumb, nrows * (thumb + head)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    for k, r in enumerate(pick):
+        x, y = (k % ncols) * thumb, (k // ncols) * (thumb + head)
+        with Image.open(root / f"lab_{r['lab']:02d}" / "reg" / "overlays" / f"{r['id']}.png") as im:
+            sheet.paste(im.convert("RGB").resize((thumb, thumb)), (x, y + head))
+        tag = "SILENTLY WRONG" if r["silently_wrong"] else r["status"]
+        colour = (200, 0, 0) if r["silently_wrong"] else (200, 110, 0) if r["status"] == "failed" else (0, 0, 0)
+        draw.text((x + 2, y + 1), f"lab {r['lab']} {r['id']}", fill=(0, 0, 0))
+        draw.text((x + 2, y + 13), f"{tag}  pose {_fmt(r.get('rms_px'), '.2f')} px  IoU {_fmt(r.get('iou'), '.2f')}", fill=colour)
+        draw.text((x + 2, y + 25), (r.get("reason") or "")[:42], fill=(90, 90, 90))
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out_path)
+
+
+def random_labs(a) -> None:
+    seed = a.seed if a.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+    out = a.out or Path("benchmarks/out/registration_labs")
+    out.mkdir(parents=True, exist_ok=True)
+    cmd = f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed}"
+    print(f"seed {seed} (repeat with: {cmd})", flush=True)
+    logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)  # failures are in the tables below
+    labs, rows = [], []
+    for i in range(a.labs):
+        lab, rr = run_lab(i, seed, a.prints, out)
+        labs.append(lab)
+        rows += rr
+        print(lab_line(lab, rr) + f" (printing {lab['print_s']:.1f} s)", flush=True)
+    cols = ["lab", "id", "pattern", "status", "reason", "rms_px", "iou", "iou_perfect", "truth_solid", "silently_wrong",
+            "score", "rotation_deg", "true_rotation_deg", "scale", "true_scale"]
+    write_tsv(out / "prints.tsv", rows, cols)
+    write_yaml(out / "labs.yaml", dict(seed=seed, labs={f"lab_{lab['index']:02d}": lab["overrides"] for lab in labs}))
+    text = summarize(seed, labs, rows, cmd)
+    (out / "summary.txt").write_text(text + "\n")
+    worst_sheet(rows, out, out / "worst.png")
+    print()
+    print(text)
+    print(f"\nwrote {out / 'prints.tsv'}, {out / 'summary.txt'}, {out / 'labs.yaml'}, {out / 'worst.png'}")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--count", type=int, default=32, help="trial masks (one lab)")
+    ap.add_argument("--seed", type=int, default=None, help="one lab: 3 if not given; random labs: drawn and printed if not given")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--lab-config", type=Path, help="overrides of the default lab (one lab)")
+    ap.add_argument("--labs", type=int, default=0, help="number of random labs (0: one lab)")
+    ap.add_argument("--prints", type=int, default=32, help="test prints per random lab")
+    a = ap.parse_args()
+    if a.labs:
+        random_labs(a)
+    else:
+        single_lab(a)
 
 
 if __name__ == "__main__":
