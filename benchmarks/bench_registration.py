@@ -234,16 +234,23 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
     return "\n".join(L)
 
 
-def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 16, thumb: int = 256, cols: int = 4) -> None:
+def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 24, thumb: int = 256, cols: int = 6) -> None:
     """The overlays of the worst prints, labelled: silently wrong first, then failed, then
-    the largest pose errors (red: registered mask contour, green: thresholded print)."""
+    the largest pose errors (red: registered mask contour, green: thresholded print).
+    Each kind gets at least a share of the sheet when there are more of the others."""
     from PIL import Image, ImageDraw
 
-    def rank(r):
-        cat = 0 if r["silently_wrong"] else 1 if r["status"] == "failed" else 2
-        return cat, -r.get("rms_px", -1.0)
+    def cat(r):
+        return 0 if r["silently_wrong"] else 1 if r["status"] == "failed" else 2
 
-    pick = [r for r in sorted(rows, key=rank) if (root / f"lab_{r['lab']:02d}" / "reg" / "overlays" / f"{r['id']}.png").is_file()][:count]
+    def rank(r):
+        return cat(r), -r.get("rms_px", -1.0)
+
+    ranked = [r for r in sorted(rows, key=rank) if (root / f"lab_{r['lab']:02d}" / "reg" / "overlays" / f"{r['id']}.png").is_file()]
+    quota = {0: count // 2, 1: count // 4, 2: count - count // 2 - count // 4}
+    first = [r for c in (0, 1, 2) for r in [r for r in ranked if cat(r) == c][: quota[c]]]
+    rest = [r for r in ranked if not any(r is f for f in first)]
+    pick = sorted(first + rest[: count - len(first)], key=rank)
     head = 40
     ncols = min(cols, max(len(pick), 1))
     nrows = max(1, (len(pick) + ncols - 1) // ncols)
