@@ -1,0 +1,390 @@
+"""Registration of a print batch: the steps in order, the QC rules, the outputs."""
+
+from __future__ import annotations
+
+import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from ..io import InputError, open_batch, read_mask, read_yaml, write_png, write_rgb, write_tsv, write_yaml
+from .flatfield import correct_image, dense_level
+from .priors import rotation_range, scale_range
+from .pose import (Fit, coarse_candidates, print_template, evidence, h3, pose_distance, pose_of, project_similarity, refine,
+                   refine_ecc, self_similar_moves, to_design)
+from .template import PrintTemplate, blurred_mask, fit_template, ncc
+
+log = logging.getLogger(__name__)
+
+MARGIN = 32  # design px of context around the design region in templates
+
+
+class RegistrationError(RuntimeError):
+    """One or more prints failed registration QC."""
+
+
+@dataclass
+class Settings:
+    mode: str = "similarity"  # or "affine"
+    level: float = 0.5  # print = density >= level * dense polymer
+    min_score: float = 0.6
+    rotation_deg: tuple = (-20.0, 20.0)  # searched range of the image's rotation
+    scale_range: tuple = (0.6, 1.6)  # image px per mask px, searched when no camera pixel size is known
+    scale_tolerance: float = 0.05  # with a known camera pixel size, the scale is searched within this
+    min_coverage: float = 0.995
+    poly_degree: int = 2
+    min_background_snr: float = 5.0
+    min_print_px: int = 30  # mask px above threshold for a print to count as non-empty
+    template_sigma: float = 2.0  # mask px
+    dense_quantile: float = 0.9
+    candidates: int = 3  # distinct coarse poses refined per print
+    min_evidence: float = 4.0  # z a pose needs over every distinct alternative (pose.evidence)
+    distinct_px: float = 1.5  # poses further apart than this (RMS, design px) are distinct
+    mismatch_factor: float = 3.0  # a print whose misfit is this many times the batch median ...
+    mismatch_sigmas: float = 4.0  # ... and this many robust sigmas above it does not match its mask
+    min_misfit_px: float = 3.0  # ... and at least this (px per edge px): a mean edge error no print of its mask has
+    max_misfit_px: float = 8.0  # misfit (px per edge px) that fails without a batch to compare with
+    max_pose_sd: float = 0.5  # design px: a pose known worse than this (1 sd, RMS over the field) fails
+    skip_failed: bool = False
+    threads: int = 2
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class PoseChoice:
+    """The chosen pose of one print and how it was chosen."""
+
+    fit: Fit | None
+    converged: bool
+    evidence: float = float("inf")  # z of the chosen pose over the nearest distinct rival
+    rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
+    tried: int = 0
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
+    """Distinct coarse poses against the blurred mask; the best one refined by ECC."""
+    tpl = blurred_mask(mask, s.template_sigma, MARGIN)
+    cands = coarse_candidates(tpl, img, s.rotation_deg, scale, s.candidates)
+    starts = [M for _, M in cands]
+    try:
+        M, _ = refine_ecc(tpl, img, starts[0])
+        c = ((tpl.shape[1] - 1) / 2, (tpl.shape[0] - 1) / 2)
+        return [project_similarity(M, c) if s.mode == "similarity" else M] + starts, True
+    except cv2.error:
+        return starts, False
+
+
+def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple) -> PoseChoice:
+    """Refine every start, add the moves under which the print maps onto itself, and keep
+    the pose the image prefers over every distinct rival (``pose`` module doc)."""
+    half = PrintTemplate(design_px, MARGIN, factor=2)
+    full = PrintTemplate(design_px, MARGIN)
+    B_half = half.exposure(half.padded(mask), x)
+    B_full = full.exposure(full.padded(mask), x)
+    n = full.shape[0]
+
+    def coarse(M):  # half resolution: every start and every move
+        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02)
+        return f, predicted_print(half, B_half, x, f)
+
+    def fine(f):  # full resolution: the poses still in the running
+        f = refine(img, f[0], full, B_full, x, s.mode, iters=12, tol=0.01)
+        return f, predicted_print(full, B_full, x, f)
+
+    def plausible(f):  # a pose outside the searched ranges is no rival: the prior excludes it
+        p = pose_of(f[0].M, n, img.shape)
+        return (s.rotation_deg[0] - 1 <= p["rotation_deg"] <= s.rotation_deg[1] + 1
+                and scale[0] / 1.01 <= p["scale"] <= scale[1] * 1.01 and f[0].gain > 0)
+
+    def dedupe(fits):
+        out = []
+        for f in fits:
+            if all(pose_distance(f[0].M, g[0].M, n, MARGIN) > 0.5 for g in out):
+                out.append(f)
+        return out
+
+    def tournament(fits, factor):
+        best = fits[0]
+        for f in fits[1:]:
+            if evidence(img, f, best, factor=factor) > 0:
+                best = f
+        return best
+
+    fits = dedupe([coarse(M) for M in starts])
+    fits = [f for f in fits if plausible(f)] or fits[:1]
+    best = tournament(fits, 2)
+    moves = self_similar_moves(predicted_print(full, B_full, x, best[0]), rotation_span=max(10.0, s.rotation_deg[1] - s.rotation_deg[0]))
+    fits = dedupe([best] + [f for f in fits if f is not best] + [f for f in (coarse((h3(best[0].M) @ S)[:2]) for S in moves)
+                                                                 if plausible(f)])
+    best = tournament(fits, 2)
+    # rivals clearly worse at half resolution are settled; the rest are compared at full
+    close = [f for f in fits if f is not best and pose_distance(f[0].M, best[0].M, n, MARGIN) > s.distinct_px
+             and evidence(img, best, f, factor=2) < 3 * s.min_evidence]
+    best = fine(best)
+    z_min, rival = float("inf"), None
+    for f in (fine(f) for f in close):
+        z = evidence(img, best, f)
+        if z < 0:
+            best, f, z = f, best, -z
+        if z < z_min:
+            z_min, rival = z, f[0].M
+    return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
+
+
+def misfit_px(printed: np.ndarray, predicted: np.ndarray) -> float:
+    """How far a print is from its predicted print: the area where they differ per edge
+    pixel of the two (a mean edge displacement, in design px)."""
+    from ..metrics import edge_length_px
+
+    edge = edge_length_px(printed) + edge_length_px(predicted)
+    return float(np.count_nonzero(printed ^ predicted) / max(edge / 2, 1.0))
+
+
+def mismatched(rows: list[dict], s: Settings) -> dict:
+    """Prints that disagree with their mask's predicted print far more than the batch's
+    other prints do (a swapped or mislabelled image): misfit above ``mismatch_factor``
+    times the batch median, ``mismatch_sigmas`` robust sigmas (1.4826 MAD, on the log
+    misfit) above it, and ``min_misfit_px`` at least. With fewer than five prints to compare, ``max_misfit_px`` alone."""
+    vals = {r["id"]: r["misfit"] for r in rows if r["status"] == "ok" and np.isfinite(r.get("misfit", np.nan))}
+    if len(vals) < 5:
+        return {k: f"misfit {v:.1f} px per edge px above {s.max_misfit_px}" for k, v in vals.items() if v > s.max_misfit_px}
+    lv = np.log(np.maximum(np.array(list(vals.values())), 1e-3))
+    med = float(np.median(lv))
+    mad = 1.4826 * float(np.median(np.abs(lv - med)))
+    lim = max(med + max(np.log(s.mismatch_factor), s.mismatch_sigmas * mad), np.log(s.min_misfit_px))
+    return {k: f"misfit {v:.1f} px per edge px, the batch's median {np.exp(med):.2f}" for k, v in vals.items()
+            if np.log(max(v, 1e-3)) > lim}
+
+
+def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
+    """The print template of one print: the batch's numbers with the print's own."""
+    return print_template(tmpl, B, x, fit.q)[0]
+
+
+def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int):
+    """The corrected image in design coordinates and the print: smoothed against noise
+    over about one image pixel, then the batch threshold. Returns (registered, print)."""
+    reg = warp_to_design(c, M, design_px)
+    scale = np.sqrt(abs(np.linalg.det(M[:, :2])))
+    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), max(0.5, 0.6 / scale))
+    return reg, reg_s >= thr
+
+
+def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
+    return cv2.warpAffine(c, M.astype(np.float64), (design_px, design_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+
+
+def coverage(M: np.ndarray, mask: np.ndarray, image_shape, margin_px=8) -> float:
+    """Share of the mask's exposed area (plus a margin) that lands inside the image."""
+    exposed = ndimage.binary_dilation(mask > 0, iterations=margin_px)
+    ys, xs = np.nonzero(exposed[::2, ::2])
+    if len(xs) == 0:
+        return 1.0
+    pts = M[:, :2] @ np.vstack([2 * xs, 2 * ys]).astype(float) + M[:, 2:3]
+    H, W = image_shape
+    inside = (pts[0] >= 0) & (pts[0] <= W - 1) & (pts[1] >= 0) & (pts[1] <= H - 1)
+    return float(inside.mean())
+
+
+def _overlay(reg: np.ndarray, mask: np.ndarray, printed: np.ndarray, dense: float) -> np.ndarray:
+    from ..metrics import edges
+
+    g = np.nan_to_num(reg, nan=0.0) / (1.2 * dense if dense > 0 else 1.0)
+    g = (np.clip(g, 0, 1) * 255).astype(np.uint8)
+    rgb = np.stack([g, g, g], axis=-1)
+    e_mask = ndimage.binary_dilation(edges(mask > 127))
+    rgb[e_mask] = (255, 40, 40)  # the mask's contour, red
+    rgb[edges(printed)] = (40, 220, 40)  # the thresholded print's contour, green
+    return rgb
+
+
+# --------------------------------------------------------------------------- batch
+
+
+def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0.6, skip_failed=False, progress=True, **kw) -> list[dict]:
+    """Register and threshold every image of a batch; write prints, qc.tsv, overlays."""
+    from tqdm import tqdm
+
+    s = Settings(mode=mode, level=level, min_score=min_score, skip_failed=skip_failed, **kw)
+    if mode not in ("similarity", "affine"):
+        raise ValueError(f"mode must be 'similarity' or 'affine', not {mode!r}")
+    batch = open_batch(batch_dir)
+    meta_raw = read_yaml(Path(batch_dir) / "batch.yaml")
+    offset = float(meta_raw.get("camera_offset_adu", 0) or 0)
+    out_dir = Path(out_dir)
+    (out_dir / "overlays").mkdir(parents=True, exist_ok=True)
+    ids = batch.ids
+    masks = {mid: read_mask(batch.masks[mid]) for mid in ids}
+    shapes = {m.shape for m in masks.values()}
+    sh = next(iter(shapes))
+    if len(shapes) != 1 or sh[0] != sh[1]:
+        raise InputError(Path(batch_dir) / "masks", f"masks must all be square and of one size, found {sorted(shapes)}")
+    design_px = sh[0]
+    s.rotation_deg = rotation_range(meta_raw, s.rotation_deg, Path(batch_dir) / "batch.yaml")
+    scales = {mid: scale_range(meta_raw, batch.images[mid], s.scale_range, s.scale_tolerance, Path(batch_dir) / "batch.yaml")
+              for mid in ids}
+    pool = ThreadPoolExecutor(s.threads)
+    bar = tqdm(total=5 * len(ids), desc=f"registering {Path(batch_dir).name}", unit="step", disable=not progress)
+
+    def pmap(fn, items):
+        out = []
+        for r in pool.map(fn, items):
+            out.append(r)
+            bar.update(1)
+        return out
+
+    # 1. flat field: one mode for the whole batch, so units agree between prints
+    corr = pmap(lambda mid: correct_image(mid, batch.images[mid], offset, s, "divide"), ids)
+    ff_mode = "divide" if all(k.noise < 1.0 / s.min_background_snr for k in corr) else "subtract"
+    if ff_mode == "subtract":
+        corr = list(pool.map(lambda mid: correct_image(mid, batch.images[mid], offset, s, "subtract"), ids))
+    corr = {k.id: k for k in corr}
+
+    # 2. one threshold for the batch; empty prints are recognised before registration
+    dense, thr = dense_level(list(corr.values()), s)
+    log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
+    smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
+    empty = set()
+    for mid, k in corr.items():
+        n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * k.noise))) if np.isfinite(thr) else 0
+        if n_above < s.min_print_px:
+            empty.add(mid)
+    todo = [mid for mid in ids if mid not in empty and masks[mid].max() > 0]
+    bar.total = 2 * len(ids) + 2 * len(todo)
+    bar.refresh()
+
+    # 3. distinct first poses against the blurred mask
+    starts = dict(zip(todo, pmap(lambda mid: first_pose(masks[mid], smooth[mid], s, scales[mid][0]), todo)))
+
+    # 4. the batch's print template, fitted over a spread of prints at their first poses
+    quarter = PrintTemplate(design_px, MARGIN, factor=4)
+    tshape = (design_px + 2 * MARGIN,) * 2
+    fit_ids = [mid for mid in todo if starts[mid][1]][:: max(1, len(todo) // 12)][:12]
+
+    def pair(mid):
+        reg = cv2.warpAffine(smooth[mid], starts[mid][0][0], tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+        return quarter.padded(masks[mid]), cv2.resize(reg, quarter.shape[::-1], interpolation=cv2.INTER_AREA), 1.0
+
+    x = np.array(PrintTemplate.START)
+    if fit_ids:
+        x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
+        log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
+
+    # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
+    choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, scales[mid][0]), todo)))
+    p = dict(zip(PrintTemplate.NAMES, (float(v) for v in x)))
+    full = PrintTemplate(design_px, MARGIN)
+
+    # 6. warp, threshold, QC, write
+    def finish(mid):
+        k, mask = corr[mid], masks[mid]
+        row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
+                   evidence="", pose_sd="", misfit="", dose="", blur="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
+                   mask=os.path.relpath(batch.masks[mid].resolve(), out_dir.resolve()), image=str(batch.images[mid]))
+        if mid in empty:
+            printed = np.zeros((design_px, design_px), bool)
+            row.update(status="empty", reason="no polymer above the batch threshold", solid_fraction=0.0)
+            write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(np.zeros(printed.shape), mask, printed, 1.0))
+            return row, printed
+        if mask.max() == 0:
+            row.update(status="failed", reason="polymer in the image but the mask is all zero")
+            return row, None
+        ch = choices[mid]
+        M = to_design(ch.fit.M, MARGIN)
+        pose = pose_of(M, design_px, k.c.shape)
+        reg, printed = threshold_print(k.c, M, thr, design_px)
+        tpl = predicted_print(full, full.exposure(full.padded(mask), x), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
+        score = ncc(reg, tpl)
+        cov = coverage(M, mask, k.c.shape)
+        row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
+                   evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
+                   pose_sd=round(ch.fit.pose_sd, 3), blur=round(ch.fit.blur, 3))
+        for a in range(2):
+            for b in range(3):
+                row[f"m{a}{b}"] = float(M[a, b])
+        reasons = []
+        if not ch.converged:
+            reasons.append("pose refinement did not converge")
+        if not s.rotation_deg[0] - 1 <= pose["rotation_deg"] <= s.rotation_deg[1] + 1:
+            reasons.append(f"rotation {pose['rotation_deg']:.1f} deg outside {tuple(s.rotation_deg)}")
+        lo, hi = scales[mid][0]
+        if not lo <= pose["scale"] <= hi:
+            reasons.append(f"scale {pose['scale']:.3f} outside {lo:.3f}..{hi:.3f} ({scales[mid][1]})")
+        if score < s.min_score:
+            reasons.append(f"registration score {score:.2f} below {s.min_score}")
+        if ch.evidence < s.min_evidence:
+            rv = pose_of(to_design(ch.rival, MARGIN), design_px, k.c.shape)
+            reasons.append(f"ambiguous: a pose {pose_distance(ch.rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px away "
+                           f"(rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
+                           f"{rv['shift_y']:.1f}) fits almost as well (evidence {ch.evidence:.1f} < {s.min_evidence})")
+        if not ch.fit.pose_sd <= s.max_pose_sd:
+            reasons.append(f"pose not determined by the print: uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})")
+        if cov < s.min_coverage:
+            reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
+        row["solid_fraction"] = round(float(printed.mean()), 5)
+        row["misfit"] = misfit_px(printed, ch.fit.gain * tpl + ch.fit.offset >= thr)
+        write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
+        if reasons:
+            row.update(status="failed", reason="; ".join(reasons))
+        return row, printed
+
+    done = pmap(finish, ids)
+    rows = [r for r, _ in done]
+    bad = mismatched(rows, s)
+    for r in rows:
+        if r["id"] in bad:
+            r.update(status="failed", reason=f"does not match its mask: {bad[r['id']]}")
+    for r, printed in done:
+        if isinstance(r["misfit"], float):
+            r["misfit"] = round(r["misfit"], 3)
+        if r["status"] in ("ok", "empty"):
+            write_png(out_dir / f"{r['id']}.png", printed)
+    bar.close()
+    pool.shutdown()
+    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "misfit", "dose", "blur", "coverage",
+            "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
+    write_tsv(out_dir / "qc.tsv", rows, cols)
+    write_yaml(out_dir / "batch.yaml", dict(meta_raw, source_batch=str(Path(batch_dir))))
+    write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
+                                                   flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p))
+    contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
+    failed = [r for r in rows if r["status"] == "failed"]
+    for r in failed:
+        log.warning("%s: registration failed: %s", r["id"], r["reason"])
+    if failed and not s.skip_failed:
+        raise RegistrationError(
+            f"{len(failed)} of {len(rows)} prints in {batch_dir} failed registration QC "
+            f"({'; '.join(r['id'] + ': ' + r['reason'] for r in failed)}). See {out_dir / 'qc.tsv'} and the overlays; "
+            "re-image them, remove them from the batch, or set registration.skip_failed to go on without them."
+        )
+    return rows
+
+
+def contact_sheet(overlay_dir: Path, rows: list[dict], out_path: Path, thumb: int = 160, cols: int = 8) -> None:
+    """All overlays of a batch on one page, each labelled with its id and QC status."""
+    from PIL import Image, ImageDraw
+
+    n = len(rows)
+    ncols = min(cols, max(n, 1))
+    nrows = (n + ncols - 1) // ncols
+    sheet = Image.new("RGB", (ncols * thumb, nrows * (thumb + 14)), (255, 255, 255))
+    draw = ImageDraw.Draw(sheet)
+    colour = {"ok": (0, 120, 0), "empty": (90, 90, 90), "failed": (200, 0, 0)}
+    for i, r in enumerate(rows):
+        x, y = (i % ncols) * thumb, (i // ncols) * (thumb + 14)
+        p = overlay_dir / f"{r['id']}.png"
+        if p.is_file():
+            with Image.open(p) as im:
+                sheet.paste(im.convert("RGB").resize((thumb, thumb)), (x, y + 14))
+        draw.text((x + 2, y + 1), f"{r['id']} {r['status']}", fill=colour.get(r["status"], (0, 0, 0)))
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    sheet.save(out_path)

@@ -1,0 +1,489 @@
+"""The pose of a print in its image: hypotheses, refinement, and the choice between them.
+
+A pose is a 2x3 matrix that maps the padded design grid (the mask with ``margin``
+pixels of context on every side) to image pixels. Registration of one print:
+
+1. **Coarse hypotheses** (``coarse_candidates``): a grid over rotation and scale with
+   FFT cross-correlation for the shift, coarse to fine, keeping several *distinct*
+   poses instead of the single best (a grating, a star or a print whose extent is
+   unclear has several peaks of nearly equal height).
+2. **Refinement** (``refine``): Gauss-Newton on the image against the print template,
+   forward-compositional as in Lucas-Kanade / ECC (Baker & Matthews 2004,
+   doi:10.1023/B:VISI.0000011205.11775.fd), with the print's own dose, gain and
+   offset estimated together with the pose and Huber weights on the residual (parts
+   of a print that cure differently from the template's prediction pull less). A
+   template of the wrong size biases scale when the size is not free; here it is.
+3. **Alternatives from the print's self-similarity** (``self_similar_moves``): the
+   moves of the design grid (shifts, rotations) under which the predicted print
+   nearly maps onto itself, found from its auto-correlation. A grating one pitch off
+   or a star one spoke off is such a move; each is refined and tested against the
+   best pose.
+4. **Evidence** (``evidence``): two poses are compared on the same image pixels, each
+   with its own fitted gain, offset and dose. The per-block gains in clipped squared
+   residual, e_b, give z = sum(e_b) / sqrt(sum(e_b^2)): z grows as the square root of
+   the number of blocks that agree, so a decision needs the evidence spread over the
+   print (a period broken at the print's ends, the parts that did not cure), not a
+   single dust speck, and needs no noise model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+
+def similarity(theta_deg: float, scale: float, src_c, dst_c) -> np.ndarray:
+    """Rotation by theta and isotropic scale about src_c, moved to dst_c (2x3)."""
+    th = np.deg2rad(theta_deg)
+    A = scale * np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+    t = np.asarray(dst_c, float) - A @ np.asarray(src_c, float)
+    return np.hstack([A, t[:, None]])
+
+
+def h3(M: np.ndarray) -> np.ndarray:
+    return np.vstack([M, [0.0, 0.0, 1.0]])
+
+
+def _zn(a: np.ndarray) -> np.ndarray:
+    a = a - a.mean()
+    return a / (np.linalg.norm(a) + 1e-12)
+
+
+def pose_distance(M1: np.ndarray, M2: np.ndarray, grid_px: int, margin: int, step: int = 16) -> float:
+    """RMS distance (design px) between where two grid->image poses send the design region."""
+    g = np.arange(margin, grid_px - margin, step, dtype=float)
+    X, Y = np.meshgrid(g, g)
+    P = np.vstack([X.ravel(), Y.ravel()])
+    d = (M1[:, :2] - M2[:, :2]) @ P + (M1[:, 2:3] - M2[:, 2:3])
+    s = np.sqrt(abs(np.linalg.det(M2[:, :2])))
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=0))) / s)
+
+
+# ------------------------------------------------------------------ 1. coarse search
+
+
+def _grid_search(t_small, Fi, N, thetas, scales):
+    """FFT cross-correlation of the rotated, scaled template with the image.
+
+    Returns (score, theta, scale, template-centre position in the small image) for
+    every (theta, scale), the shift at the correlation peak."""
+    ct = ((t_small.shape[1] - 1) / 2, (t_small.shape[0] - 1) / 2)
+    out = []
+    for sc in scales:
+        side = int(np.ceil(max(t_small.shape) * sc * 1.42)) + 2
+        c_side = ((side - 1) / 2, (side - 1) / 2)
+        for th in thetas:
+            w = cv2.warpAffine(t_small, similarity(th, sc, ct, c_side), (side, side), flags=cv2.INTER_LINEAR)
+            tz = np.zeros((N, N), np.float32)
+            tz[:side, :side] = _zn(w)
+            cc = np.fft.irfft2(Fi * np.conj(np.fft.rfft2(tz)), s=(N, N))
+            k = int(np.argmax(cc))
+            dy, dx = divmod(k, N)
+            dy = dy - N if dy > N // 2 else dy
+            dx = dx - N if dx > N // 2 else dx
+            out.append((float(cc.flat[k]), float(th), float(sc), np.array([c_side[0] + dx, c_side[1] + dy])))
+    out.sort(key=lambda c: -c[0])
+    return out
+
+
+def _distinct(cands, count, d_theta, d_logs, d_pos):
+    kept = []
+    for c in cands:
+        if all(abs(c[1] - k[1]) > d_theta or abs(np.log(c[2] / k[2])) > d_logs or np.hypot(*(c[3] - k[3])) > d_pos
+               for k in kept):
+            kept.append(c)
+        if len(kept) == count:
+            break
+    return kept
+
+
+def coarse_candidates(tpl: np.ndarray, img: np.ndarray, rotation: tuple, scale: tuple, count: int = 3):
+    """Up to ``count`` distinct poses (template grid -> image), best first, with their scores.
+
+    A wide grid with the template at 64 px, then a fine grid around each distinct
+    candidate at 128 px. ``rotation`` (deg) and ``scale`` (image px per design px) are
+    the ranges searched."""
+    lo, hi = scale
+    rlo, rhi = rotation
+    cands = None
+    for side, dth, dls in ((64, 4.0, 0.08), (128, 1.0, 0.02)):
+        f = max(1.0, tpl.shape[0] / side)
+        t_small = cv2.resize(tpl, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
+        i_small = cv2.resize(img, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
+        Hs, Ws = i_small.shape
+        N = cv2.getOptimalDFTSize(int(max(Hs, Ws) + hi * max(t_small.shape) * 1.5))
+        img_c = np.zeros((N, N), np.float32)
+        img_c[:Hs, :Ws] = _zn(i_small)
+        Fi = np.fft.rfft2(img_c)
+        if cands is None:
+            n_th = max(1, int(np.ceil((rhi - rlo) / dth)))
+            thetas = np.linspace(rlo, rhi, n_th + 1) if rhi > rlo else np.array([rlo])
+            scales = np.exp(np.arange(np.log(lo), np.log(hi) + 1e-9, dls)) if hi > lo * np.exp(dls / 2) else np.array([np.sqrt(lo * hi)])
+            found = _grid_search(t_small, Fi, N, thetas, scales)
+            cands = _distinct(found, count, 6.0, 0.1, 3.0)
+            f_prev = f
+        else:
+            fine = []
+            for _, th0, sc0, pos0 in cands:
+                thetas = np.clip(th0 + np.arange(-3, 3 + 1e-9, dth), rlo, rhi)
+                scales = np.clip(sc0 * np.exp(np.arange(-0.06, 0.06 + 1e-9, dls)), lo, hi)
+                found = _grid_search(t_small, Fi, N, np.unique(thetas), np.unique(scales))
+                fine.append(found[0])
+            fine.sort(key=lambda c: -c[0])
+            cands = _distinct(fine, count, 1.5, 0.02, 2.0)
+    c_tpl = ((tpl.shape[1] - 1) / 2, (tpl.shape[0] - 1) / 2)
+    return [(v, similarity(th, sc, c_tpl, f * pos + (f - 1) / 2)) for v, th, sc, pos in cands]
+
+
+def refine_ecc(tpl: np.ndarray, img: np.ndarray, M0: np.ndarray, levels=(2, 1)):
+    """ECC (Evangelidis & Psarakis 2008, doi:10.1109/TPAMI.2008.113), affine, coarse to
+    fine, for the first poses against the blurred mask. Returns (M, rho)."""
+    M = M0.astype(np.float32).copy()
+    rho = np.nan
+    for lv in levels:
+        S = np.diag([lv, lv, 1.0]).astype(np.float32)
+        Si = np.diag([1 / lv, 1 / lv, 1.0]).astype(np.float32)
+        if lv > 1:
+            t = cv2.resize(tpl, None, fx=1 / lv, fy=1 / lv, interpolation=cv2.INTER_AREA)
+            i = cv2.resize(img, None, fx=1 / lv, fy=1 / lv, interpolation=cv2.INTER_AREA)
+            # pixel-centre conventions are absorbed by ECC's translation refinement
+            Mlv = (Si @ h3(M) @ S)[:2]
+        else:
+            t, i, Mlv = tpl, img, M
+        crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100 if lv > 1 else 50, 1e-5)
+        rho, Mlv = cv2.findTransformECC(t, i, Mlv.astype(np.float32), cv2.MOTION_AFFINE, crit, None, 3)
+        M = (S @ h3(Mlv) @ Si)[:2] if lv > 1 else Mlv
+    return M.astype(np.float64), float(rho)
+
+
+# -------------------------------------------------------------------- 2. refinement
+
+
+@dataclass
+class Fit:
+    """A refined pose with the print's own nuisance numbers."""
+
+    M: np.ndarray  # full-resolution grid -> image
+    gain: float
+    offset: float
+    q: np.ndarray  # the print's nuisance numbers, in the order of NUISANCE
+    sigma: float  # robust scale of the residual
+    pose_sd: float  # standard deviation of the pose, RMS over the design field (design px)
+    converged: bool
+    iterations: int
+
+    def __getattr__(self, name):  # dose, blur, grad_x, grad_y, gel, edge
+        names = [n for n, _, _ in NUISANCE]
+        if name in names:
+            return float(self.q[names.index(name)])
+        raise AttributeError(name)
+
+
+def _grid_to_full(f: int) -> np.ndarray:
+    """Grid subsampled by f -> full grid (pixel centres: x = f x_s + (f - 1) / 2)."""
+    return np.array([[f, 0, (f - 1) / 2], [0, f, (f - 1) / 2], [0, 0, 1.0]])
+
+
+def _warp(img: np.ndarray, Ms: np.ndarray, shape) -> np.ndarray:
+    return cv2.warpAffine(img, Ms.astype(np.float64), shape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+
+
+# The print's own nuisance numbers: name, prior mean (None: the batch template's value of
+# that name), prior standard deviation. The priors keep the fit well posed where a print
+# cannot tell them apart (dose against gel, edge offset against scale for one feature);
+# the pose's spread then shows what the print leaves open.
+NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15),
+            ("gel", None, 0.1), ("edge", 0.0, 1.5))
+_BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "gel": (0.0, 2.0),
+           "edge": (-6.0, 6.0)}
+
+
+def _prior(x) -> tuple[np.ndarray, np.ndarray]:
+    batch = {"blur": max(float(x[10]), 0.3), "gel": float(x[1])}
+    mean = np.array([batch[n] if m is None else m for n, m, _ in NUISANCE])
+    return mean, np.array([sd for _, _, sd in NUISANCE])
+
+
+def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
+    """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives."""
+    dose, blur, gx, gy, gel, edge = (float(v) for v in q)
+    field = 1.0 + gx * tmpl.X + gy * tmpl.Y
+    xg = np.array(x, float)
+    xg[1] = gel
+    T, (dT, dTx, dTy, dTg) = tmpl.cure_jacobian(B, xg, dose * field, (field, dose * tmpl.X, dose * tmpl.Y,
+                                                                     -1.0 / np.maximum(B, 1e-6)), blur)
+    hb = 0.1 * blur
+    dTb = (tmpl.cure(B, xg, dose * field, blur=blur + hb) - T) / hb
+    T, dTe = edge_shifted(T, edge, tmpl.f)
+    return T, [dT, dTb, dTx, dTy, dTg, dTe]
+
+
+def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
+           tol: float = 0.01) -> Fit:
+    """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
+    nuisance numbers (``NUISANCE``, with their priors).
+
+    ``img`` is the corrected image, ``tmpl`` a PrintTemplate (its ``factor`` sets the
+    resolution), ``B`` the mask's scattered dose on tmpl's grid, ``x`` the batch's
+    template numbers. Minimises sum w (I(M x) - gain T(x; q) - offset)^2 / sigma^2 plus
+    the priors' penalties, with Huber weights w; the pose's Jacobian comes from
+    gain * grad T, which is noise-free and equals the aligned image's gradient at the
+    solution (image noise in the gradient would inflate the normal matrix and shorten
+    every step).
+    """
+    q0, qs = _prior(x)
+    if isinstance(fit_or_M, Fit):
+        M, gain, offset, q = fit_or_M.M, fit_or_M.gain, fit_or_M.offset, fit_or_M.q.copy()
+    else:
+        M, gain, offset, q = np.asarray(fit_or_M, float), None, 0.0, q0.copy()
+    lo = np.array([_BOUNDS[n][0] for n, _, _ in NUISANCE])
+    hi = np.array([_BOUNDS[n][1] for n, _, _ in NUISANCE])
+    f = tmpl.f
+    S = _grid_to_full(f)
+    Ms = h3(M) @ S
+    scale = float(np.sqrt(abs(np.linalg.det(Ms[:2, :2]))))
+    src = cv2.GaussianBlur(img, (0, 0), 0.4 * scale) if scale > 1.2 else img
+    shape = tmpl.shape
+    n = shape[0]
+    c = (n - 1) / 2
+    g = np.arange(n, dtype=np.float32) - np.float32(c)
+    Xg, Yg = np.meshgrid(g, g)
+    corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
+    sigma, it, move, H, norm, r, w, npose = float("nan"), 0, float("inf"), None, None, None, None, 0
+    for it in range(1, iters + 1):
+        Iw = _warp(src, Ms[:2], shape)
+        valid = np.isfinite(Iw)
+        T, dq = print_template(tmpl, B, x, q)
+        if gain is None:  # first pass: gain and offset by least squares
+            A = np.stack([T[valid], np.ones(int(valid.sum()), np.float32)], 1)
+            gain, offset = (float(v) for v in np.linalg.lstsq(A, Iw[valid], rcond=None)[0])
+        Iw = np.where(valid, Iw, offset + gain * T).astype(np.float32)
+        r = Iw - gain * T - offset
+        sigma = float(1.4826 * np.median(np.abs(r[valid]))) + 1e-6
+        w = np.where(valid, np.minimum(1.0, 2.0 * sigma / (np.abs(r) + 1e-12)), 0.0).astype(np.float32)
+        gy, gx = np.gradient(gain * T)
+        if mode == "affine":
+            cols = [gx * Xg, gx * Yg, gy * Xg, gy * Yg, gx, gy]
+        else:
+            cols = [gx * Xg + gy * Yg, gy * Xg - gx * Yg, gx, gy]
+        npose = len(cols)
+        cols += [-T, -np.ones_like(T)] + [-gain * d for d in dq]
+        J = np.stack([col.ravel() for col in cols], 1)
+        norm = np.sqrt((J * J).sum(0)) + 1e-9
+        J /= norm
+        Jw = J * w.ravel()[:, None]
+        H = (Jw.T @ J).astype(np.float64) / sigma**2
+        rhs = -(Jw.T @ r.ravel()).astype(np.float64) / sigma**2
+        kq = slice(npose + 2, None)
+        H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
+        rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
+        H[np.diag_indices_from(H)] += 1e-9 * np.trace(H) / len(H)
+        delta = np.linalg.solve(H, rhs) / norm
+        p = delta[:npose]
+        if mode == "affine":
+            D, t = np.array([[p[0], p[1]], [p[2], p[3]]]), p[4:6]
+        else:
+            D, t = np.array([[p[0], -p[1]], [p[1], p[0]]]), p[2:4]
+        move = float(np.abs(D @ corners + t[:, None]).max())
+        if move > 2.0:  # a trust region: at most 2 grid px a step
+            D, t, delta, move = D * 2.0 / move, t * 2.0 / move, delta * 2.0 / move, 2.0
+        A_s, t_s = Ms[:2, :2], Ms[:2, 2]
+        cvec = np.array([c, c])
+        Ms = h3(np.hstack([A_s @ (np.eye(2) + D), (A_s @ (t - D @ cvec) + t_s)[:, None]]))
+        gain += float(delta[npose])
+        offset += float(delta[npose + 1])
+        q = np.clip(q + delta[npose + 2 :], lo, hi)
+        if move < tol:
+            break
+    converged = move < max(10 * tol, 0.1)  # still moving by a tenth of a pixel: not settled
+    sd = _pose_sd(H, norm, npose, r * np.sqrt(w), sigma, mode, corners) * f
+    M_full = (Ms @ np.linalg.inv(S))[:2]
+    return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
+
+
+def edge_shifted(T: np.ndarray, edge: float, factor: int = 1):
+    """The template with every edge moved outward by ``edge`` design px (to first order,
+    T + e |grad T|), and its derivative in e. A print that is uniformly larger or
+    smaller than predicted (erosion or swelling after the wash, a cure boundary the
+    template misplaces) is otherwise matched by a wrong scale."""
+    gy, gx = np.gradient(T)
+    g = np.sqrt(gx * gx + gy * gy) / factor
+    return T + edge * g, g
+
+
+def _pose_sd(H, norm, npose, rw, sigma, mode, corners, max_lag: int = 12) -> float:
+    """Standard deviation of the pose (grid px, RMS over the field): the pose block of
+    the inverse of the (data / sigma^2 + priors) normal matrix, so the nuisance numbers
+    are marginalised.
+
+    Residuals of a print are not independent: template misfit runs along edges. The
+    variance is inflated by the residual's integrated auto-correlation (the number of
+    pixels that act as one), measured on the weighted residual itself.
+    """
+    if H is None:
+        return float("inf")
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return float("inf")
+    C = C / np.outer(norm, norm)
+    n = rw.shape[0]
+    F = np.fft.rfft2(rw - rw.mean(), s=(2 * n, 2 * n))
+    ac = np.fft.irfft2(F * np.conj(F), s=(2 * n, 2 * n))
+    ac = np.fft.fftshift(ac)[n - max_lag : n + max_lag + 1, n - max_lag : n + max_lag + 1]
+    kappa = float(np.clip(ac.sum() / max(ac[max_lag, max_lag], 1e-30), 1.0, (2 * max_lag + 1) ** 2))
+    Cp = C[:npose, :npose] * kappa
+    # displacement of field points: d(x) = G(x) p; RMS over a grid of points of the field
+    g = np.linspace(-1, 1, 5) * corners[0, 1] * -1
+    X, Y = np.meshgrid(g, g)
+    var = 0.0
+    for x_, y_ in zip(X.ravel(), Y.ravel()):
+        if mode == "affine":
+            G = np.array([[x_, y_, 0, 0, 1, 0], [0, 0, x_, y_, 0, 1]])
+        else:
+            G = np.array([[x_, -y_, 1, 0], [y_, x_, 0, 1]])
+        var += np.trace(G @ Cp @ G.T)
+    return float(np.sqrt(max(var / X.size, 0.0)))
+
+
+# ------------------------------------------------------------------ 3. alternatives
+
+
+def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float = 30.0, min_corr: float = 0.5,
+                       count: int = 4) -> list[np.ndarray]:
+    """Moves S (3x3, grid -> grid) under which the predicted print T nearly maps onto itself.
+
+    Shifts: local maxima of T's normalised auto-correlation within ``max_shift`` px.
+    Rotations: for each angle, the peak of the cross-correlation of T with T rotated
+    about the grid centre (the shift at the peak turns it into a rotation about the
+    print's own centre of symmetry, a star's hub). Only moves whose correlation is at
+    least ``min_corr`` are kept, the strongest ``count`` of each kind.
+    """
+    n = T.shape[0]
+    z = _zn(T.astype(np.float64))
+    N = cv2.getOptimalDFTSize(n + max_shift)
+    F = np.fft.rfft2(z, s=(N, N))
+    moves = []
+    ac = np.fft.irfft2(F * np.conj(F), s=(N, N))
+    ac = np.fft.fftshift(ac)
+    o = N // 2
+    win = ac[o - max_shift : o + max_shift + 1, o - max_shift : o + max_shift + 1]
+    peaks = (win == ndimage.maximum_filter(win, size=5)) & (win >= min_corr)
+    ys, xs = np.nonzero(peaks)
+    cand = sorted(((float(win[y, x]), x - max_shift, y - max_shift) for y, x in zip(ys, xs)
+                   if np.hypot(x - max_shift, y - max_shift) >= 2.5), reverse=True)
+    for v, dx, dy in cand[:count]:
+        moves.append(np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]]))
+    # rotations, at quarter resolution (a spoke is wide near a star's rim)
+    q = 4
+    Tq = cv2.resize(T, None, fx=1 / q, fy=1 / q, interpolation=cv2.INTER_AREA)
+    nq = Tq.shape[0]
+    Nq = cv2.getOptimalDFTSize(2 * nq)
+    Fq = np.fft.rfft2(_zn(Tq.astype(np.float64)), s=(Nq, Nq))
+    cq = ((nq - 1) / 2,) * 2
+    prof = []
+    for phi in np.arange(-rotation_span, rotation_span + 1e-9, 1.0):
+        R = similarity(phi, 1.0, cq, cq)
+        Tr = cv2.warpAffine(Tq, R, (nq, nq), flags=cv2.INTER_LINEAR)
+        cc = np.fft.irfft2(np.fft.rfft2(_zn(Tr.astype(np.float64)), s=(Nq, Nq)) * np.conj(Fq), s=(Nq, Nq))
+        k = int(np.argmax(cc))
+        dy, dx = divmod(k, Nq)
+        dy = dy - Nq if dy > Nq // 2 else dy
+        dx = dx - Nq if dx > Nq // 2 else dx
+        prof.append((phi, float(cc.flat[k]), dx, dy))
+    vals = np.array([p[1] for p in prof])
+    rot = []
+    for i in range(1, len(prof) - 1):
+        phi, v, dx, dy = prof[i]
+        if abs(phi) >= 3.0 and v >= min_corr and v >= vals[i - 1] and v >= vals[i + 1]:
+            rot.append((v, phi, dx, dy))
+    c = (n - 1) / 2
+    for v, phi, dx, dy in sorted(rot, reverse=True)[:count]:
+        # T(R x + d) ~ T(x) with R about the grid centre; the inverse move maps T onto itself
+        R = h3(similarity(phi, 1.0, (c, c), (c + q * dx, c + q * dy)))
+        moves.append(np.linalg.inv(R))
+    return moves
+
+
+# ---------------------------------------------------------------------- 4. evidence
+
+
+def predicted_image(fit: Fit, T: np.ndarray, image_shape, factor: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """The image that a fit predicts (gain T + offset; offset off the print), and the
+    footprint of its grid in the image. ``T`` is on the grid subsampled by ``factor``."""
+    H, W = image_shape
+    Ms = (h3(fit.M) @ _grid_to_full(factor))[:2]
+    P = cv2.warpAffine(T, Ms, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    foot = cv2.warpAffine(np.ones_like(T), Ms, (W, H), flags=cv2.INTER_NEAREST, borderValue=0.0) > 0
+    return fit.gain * P + fit.offset, foot
+
+
+def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 16, clip: float = 4.0, factor: int = 1) -> float:
+    """How strongly the image prefers fit ``a`` over fit ``b`` (z >> 0: a; z << 0: b).
+
+    ``a`` and ``b`` are (Fit, full-resolution template of that fit). Both are compared
+    on the same image pixels (the union of their footprints), with squared residuals
+    clipped at ``clip`` robust sigmas so that no single speck decides. Returns
+    z = sum(e_b) / sqrt(sum(e_b^2)) over blocks of ``block`` px (see the module doc).
+    """
+    Pa, fa = predicted_image(a[0], a[1], img.shape, factor)
+    Pb, fb = predicted_image(b[0], b[1], img.shape, factor)
+    # only where the two predictions differ: elsewhere both fit the same pixels alike and
+    # would add their noise to the denominator alone
+    differ = np.abs(Pa - Pb) > 0.1 * max(abs(a[0].gain), abs(b[0].gain), 1e-6) * max(float(a[1].max()), float(b[1].max()))
+    region = (fa | fb) & np.isfinite(img) & differ
+    s2 = (clip * max(a[0].sigma, b[0].sigma)) ** 2
+    ra = np.minimum((img - Pa) ** 2, s2)
+    rb = np.minimum((img - Pb) ** 2, s2)
+    e = np.where(region, rb - ra, 0.0)
+    H, W = e.shape
+    Hb, Wb = H // block * block, W // block * block
+    eb = e[:Hb, :Wb].reshape(Hb // block, block, Wb // block, block).sum(axis=(1, 3)).ravel()
+    den = float(np.sqrt((eb * eb).sum()))
+    return float(eb.sum() / den) if den > 0 else 0.0
+
+
+# ---------------------------------------------------------------------- conversions
+
+
+def project_similarity(M: np.ndarray, center) -> np.ndarray:
+    """Nearest rotation + isotropic scale to the affine part; the centre maps as before."""
+    A = M[:, :2]
+    a = 0.5 * (A[0, 0] + A[1, 1])
+    b = 0.5 * (A[1, 0] - A[0, 1])
+    As = np.array([[a, -b], [b, a]])
+    c = np.asarray(center, float)
+    t = (A @ c + M[:, 2]) - As @ c
+    return np.hstack([As, t[:, None]])
+
+
+def pose_of(M: np.ndarray, design_px: int, image_shape) -> dict:
+    """Rotation (deg), scale and centre shift (image px) of a design->image matrix."""
+    A = M[:, :2]
+    scale = float(np.sqrt(abs(np.linalg.det(A))))
+    rot = float(np.rad2deg(np.arctan2(A[1, 0] - A[0, 1], A[0, 0] + A[1, 1])))
+    c = (design_px - 1) / 2
+    p = A @ np.array([c, c]) + M[:, 2]
+    H, W = image_shape
+    return dict(rotation_deg=rot, scale=scale, shift_x=float(p[0] - (W - 1) / 2), shift_y=float(p[1] - (H - 1) / 2))
+
+
+def to_design(M: np.ndarray, margin: int) -> np.ndarray:
+    """Template (padded) -> image matrix to design -> image matrix."""
+    Md = M.copy()
+    Md[:, 2] = M[:, :2] @ np.array([margin, margin], float) + M[:, 2]
+    return Md
+
+
+def transform_rms_px(M_est: np.ndarray, M_true: np.ndarray, design_px: int, step: int = 8) -> float:
+    """RMS distance (design pixels) between where two design->image maps send the design field."""
+    g = np.arange(0, design_px, step, dtype=float)
+    X, Y = np.meshgrid(g, g)
+    P = np.vstack([X.ravel(), Y.ravel()])
+    d = (M_est[:, :2] - M_true[:, :2]) @ P + (M_est[:, 2:3] - M_true[:, 2:3])
+    s = np.sqrt(abs(np.linalg.det(M_true[:, :2])))
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=0))) / s)

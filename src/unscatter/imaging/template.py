@@ -1,0 +1,121 @@
+"""What the print of a mask looks like under the microscope: the registration's template.
+
+A blurred mask is a poor template. Prints of grey cells, features under a weaker part
+of the field, thin lines and dim corners that do not cure at all, and prints that are
+larger or smaller than their mask all differ from the mask, and a pose fitted to a
+template of the wrong size trades the size error for scale and shift (1 to 6 px over
+the field in our measurements). The print template predicts which parts of a mask cure:
+
+    exposure   E = m (1 + fx X + fy Y + fxx X^2 + fxy X Y + fyy Y^2)
+    scattered  B = (1 - tail) G_sigma * E + tail G_tail_sigma * E
+    cured      R = 1 - exp(-max(dose B - gel, 0) / k)
+    imaged     T = G_blur * R
+
+The batch shares the printer's numbers (``NAMES``), fitted once over its prints, so
+that they cannot trade off against any one print's pose; each print has its own
+``dose`` (lamp and exposure vary between prints), fitted together with its pose by
+``pose.refine``. This is a registration nuisance model, not the calibrated printer
+model: it only has to put the print's edges where the image has them.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+class PrintTemplate:
+    """The print template on the padded design grid, optionally subsampled by ``factor``."""
+
+    NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0)
+    # Powell works on these scales (a unit step is a sensible first move for each)
+    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5)
+
+    def __init__(self, design_px: int, margin: int, factor: int = 1):
+        self.margin, self.f, self.design_px = margin, factor, design_px
+        n = (design_px + 2 * margin) // factor
+        self.shape = (n, n)
+        # pixel centres: x_full = f x_small + (f - 1) / 2; X, Y in [-1, 1] over the design region
+        ax = ((np.arange(n) * factor + (factor - 1) / 2) - (design_px + 2 * margin - 1) / 2) / ((design_px - 1) / 2)
+        self.X, self.Y = np.meshgrid(ax.astype(np.float32), ax.astype(np.float32))
+
+    def padded(self, mask: np.ndarray) -> np.ndarray:
+        m = np.pad(mask.astype(np.float32) / 255.0, self.margin)
+        if self.f > 1:
+            m = cv2.resize(m, self.shape[::-1], interpolation=cv2.INTER_AREA)
+        return m
+
+    def exposure(self, m: np.ndarray, x) -> np.ndarray:
+        """The scattered dose B (before the cure), for a padded mask ``m``."""
+        sigma, _, _, fx, fy, fxx, fxy, fyy, tail, tail_sigma, _ = (float(v) for v in x)
+        X, Y, f = self.X, self.Y, self.f
+        e = m * (1 + fx * X + fy * Y + fxx * X * X + fxy * X * Y + fyy * Y * Y)
+        b = cv2.GaussianBlur(e, (0, 0), max(sigma, 0.3) / f)
+        tail = min(max(tail, 0.0), 0.9)
+        if tail > 0:
+            b = (1 - tail) * b + tail * cv2.GaussianBlur(e, (0, 0), max(tail_sigma, 1.0) / f)
+        return b
+
+    def cure(self, B: np.ndarray, x, dose: float = 1.0, with_gradient: bool = False, blur: float | None = None):
+        """The imaged print T for the scattered dose B; with its derivative in ``dose``.
+
+        ``blur`` (design px) overrides the batch's microscope blur: focus varies by image."""
+        gel, k = float(x[1]), max(float(x[2]), 1e-3)
+        blur = max(float(x[10]) if blur is None else blur, 0.3) / self.f
+        u = np.maximum(dose * B - gel, 0.0)
+        e = np.exp(-u / k)
+        T = cv2.GaussianBlur((1.0 - e).astype(np.float32), (0, 0), blur)
+        if not with_gradient:
+            return T
+        dT = cv2.GaussianBlur((np.where(u > 0, e * B / k, 0.0)).astype(np.float32), (0, 0), blur)
+        return T, dT
+
+    def cure_jacobian(self, B: np.ndarray, x, dose, modulations, blur: float):
+        """T for a dose map ``dose`` (scalar or array) and its derivatives along each of
+        ``modulations`` (d dose / d theta maps): dT/dtheta = G_blur * (exp(-u/k) B / k dD/dtheta)."""
+        gel, k = float(x[1]), max(float(x[2]), 1e-3)
+        sb = max(blur, 0.3) / self.f
+        u = np.maximum(dose * B - gel, 0.0)
+        e = np.exp(-u / k)
+        T = cv2.GaussianBlur((1.0 - e).astype(np.float32), (0, 0), sb)
+        base = np.where(u > 0, e * B / k, 0.0)
+        return T, [cv2.GaussianBlur((base * mod).astype(np.float32), (0, 0), sb) for mod in modulations]
+
+    def __call__(self, m: np.ndarray, x, dose: float = 1.0, blur: float | None = None) -> np.ndarray:
+        return self.cure(self.exposure(m, x), x, dose, blur=blur)
+
+
+def blurred_mask(mask: np.ndarray, sigma: float, margin: int) -> np.ndarray:
+    """The simplest template (the mask blurred by a few pixels), for the first poses."""
+    t = np.pad(mask.astype(np.float32) / 255.0, margin)
+    return cv2.GaussianBlur(t, (0, 0), sigma)
+
+
+def ncc(a: np.ndarray, b: np.ndarray) -> float:
+    """Normalised cross-correlation over the pixels where both are finite."""
+    ok = np.isfinite(a) & np.isfinite(b)
+    if ok.sum() < 10:
+        return 0.0
+    x, y = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
+    return float((x * y).sum() / (np.sqrt((x * x).sum() * (y * y).sum()) + 1e-12))
+
+
+def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600) -> tuple[np.ndarray, float]:
+    """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
+
+    ``pairs``: (padded mask, image warped into padded design coordinates, the print's
+    dose), on ``tmpl``'s grid. Powell, because the cure's kink makes the objective only
+    piecewise smooth and the evaluation is cheap at quarter resolution.
+    """
+    from scipy.optimize import minimize
+
+    step = np.asarray(PrintTemplate.STEP)
+
+    def cost(z):
+        x = z * step
+        return -float(np.mean([ncc(reg, tmpl(m, x, d)) for m, reg, d in pairs]))
+
+    res = minimize(cost, np.asarray(x0, float) / step, method="Powell",
+                   options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
+    return res.x * step, -float(res.fun)
