@@ -7,8 +7,14 @@ is wrong with it).
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import difflib
+import logging
 import math
+import os
+import secrets
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,16 +22,19 @@ import numpy as np
 import yaml
 from PIL import Image
 
+log = logging.getLogger(__name__)
+
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
 
 
 class InputError(ValueError):
-    """Bad input: the message names the file and what is wrong with it."""
+    """Bad input: the message names the file and what is wrong with it, on one line
+    (the command line prints it as it is)."""
 
     def __init__(self, path, problem: str):
         self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{path}: {problem}")
+        self.problem = " ".join(str(problem).split())  # library messages may span lines
+        super().__init__(f"{path}: {self.problem}")
 
 
 # --------------------------------------------------------------------------- masks
@@ -316,3 +325,153 @@ def list_pngs(folder) -> dict:
     if not folder.is_dir():
         raise InputError(folder, "folder does not exist")
     return {p.stem: p for p in sorted(folder.glob("*.png"))}
+
+
+# ------------------------------------------------------------------ output folders
+
+# The file by which a folder is known as the output of one of our commands: it names the
+# command and lists the files the command wrote.
+OUTPUT_MARKER = ".unscatter-output.yaml"
+# Files that tools put into an output folder of ours (Snakemake's mtime carrier).
+_FOREIGN_OK = {OUTPUT_MARKER, ".snakemake_timestamp"}
+
+
+def _read_marker(folder: Path) -> dict | None:
+    try:
+        with open(folder / OUTPUT_MARKER, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("command"), str) else None
+
+
+def _files(folder: Path) -> list[str]:
+    """Every file below ``folder``, as paths relative to it (marker left out)."""
+    out = []
+    for root, _dirs, names in os.walk(folder):
+        for name in names:
+            rel = Path(root, name).relative_to(folder).as_posix()
+            if rel not in _FOREIGN_OK:
+                out.append(rel)
+    return sorted(out)
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def check_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
+    """Refuse to write ``command``'s output folder ``path`` where that would lose data.
+
+    The folder must not be, contain or lie inside any of ``inputs`` (paths compared
+    after resolving symbolic links; entries that are not paths are skipped). If it
+    exists it must be empty, or an earlier output of the same command holding nothing
+    that the command did not write: its marker file says so, or, for an output without
+    one, ``recognise(folder)`` does (a Zarr store marks itself in its attributes).
+    Returns the resolved folder.
+    """
+    path = Path(path)
+    where = path.resolve()
+    for given in inputs:
+        if not isinstance(given, (str, os.PathLike)):
+            continue
+        source = Path(given).resolve()
+        if where == source:
+            also = "" if Path(given) == path else f" ({given})"
+            raise InputError(path, f"is also an input{also}; write the output to another folder (nothing was changed)")
+        if _within(where, source):
+            raise InputError(path, f"lies inside the input {given}; write the output elsewhere (nothing was changed)")
+        if _within(source, where):
+            raise InputError(path, f"contains the input {given}; write the output elsewhere (nothing was changed)")
+    if not where.exists() and not where.is_symlink():
+        return where
+    if not where.is_dir():
+        raise InputError(path, "exists and is not a folder (nothing was changed)")
+    if not any(where.iterdir()):
+        return where
+    marker = _read_marker(where)
+    keep = "; give a new or empty folder, or remove this one (nothing was changed)"
+    if marker is None:
+        if recognise is not None and recognise(where):
+            return where
+        raise InputError(path, f"is not empty and is not an earlier output of `unscatter {command}`{keep}")
+    if marker["command"] != command:
+        raise InputError(path, f"holds the output of `unscatter {marker['command']}`, not of `unscatter {command}`{keep}")
+    if isinstance(marker.get("files"), list):
+        added = sorted(set(_files(where)) - set(marker["files"]))
+        if added:
+            more = f" and {len(added) - 3} more" if len(added) > 3 else ""
+            raise InputError(path, f"holds files that `unscatter {command}` did not write ({', '.join(added[:3])}{more}); "
+                                   f"they would be lost{keep}")
+    return where
+
+
+def claim_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
+    """``check_output_dir``, then create and mark the folder, for a command that writes
+    into it as it goes (training keeps its checkpoint there to resume, and replaces
+    each of its files atomically). Returns the resolved folder."""
+    final = check_output_dir(path, command=command, inputs=inputs, recognise=recognise)
+    final.mkdir(parents=True, exist_ok=True)
+    _write_marker(final, command)
+    return final
+
+
+@contextlib.contextmanager
+def output_dir(path, *, command: str, inputs=(), recognise=None, marker: bool = True):
+    """Write ``command``'s output folder safely: ``with output_dir(out, command=..., inputs=[...]) as tmp:``.
+
+    ``check_output_dir`` refuses first, so that the user's files stay as they are. The
+    body writes into a fresh hidden sibling folder ``tmp``, which replaces ``path`` only
+    when the body finishes: the old output is renamed away, the new one renamed in, the
+    old one deleted. An interrupted or failed run thus leaves the earlier output whole,
+    and a rerun leaves nothing stale from it. The marker file (``OUTPUT_MARKER``: the
+    command and the files it wrote) goes in last; ``marker=False`` leaves it out for
+    outputs that ``recognise`` knows by themselves (a Zarr store lists every file in it).
+    """
+    final = check_output_dir(path, command=command, inputs=inputs, recognise=recognise)
+    tmp = final.parent / f".{final.name}.{secrets.token_hex(4)}.partial"
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as exc:  # e.g. a read-only folder: say so before any work is done
+        raise InputError(path, f"cannot write the output here ({exc.strerror or exc})") from exc
+    try:
+        yield tmp
+        if marker:
+            _write_marker(tmp, command, _files(tmp))
+        # the folder may have changed while the command ran: check again before replacing it
+        check_output_dir(path, command=command, recognise=recognise)
+        _swap_in(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_marker(folder: Path, command: str, files: list[str] | None = None) -> None:
+    from . import __version__
+
+    data = dict(command=command, unscatter_version=__version__,
+                note="written by unscatter; a rerun of this command replaces this folder")
+    if files is not None:
+        data["files"] = files
+    write_yaml(folder / OUTPUT_MARKER, data)
+
+
+def _swap_in(new: Path, final: Path) -> None:
+    """Rename ``new`` to ``final``; an existing ``final`` is renamed away first and
+    deleted after, so that one complete version is in place at every moment."""
+    old = None
+    if final.exists():
+        old = final.parent / f".{final.name}.{secrets.token_hex(4)}.old"
+        os.rename(final, old)
+    try:
+        os.rename(new, final)
+    except BaseException:
+        if old is not None:
+            os.rename(old, final)
+        raise
+    if old is not None:
+        try:
+            shutil.rmtree(old)
+        except OSError as exc:
+            log.warning("could not remove the previous output, now at %s (%s)", old, exc)
