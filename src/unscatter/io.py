@@ -62,15 +62,25 @@ def read_mask(path) -> np.ndarray:
 
 
 def write_png(path, arr: np.ndarray) -> None:
-    """Write an 8-bit grayscale PNG (bool arrays become 0/255)."""
+    """Write an 8-bit grayscale PNG (bool arrays become 0/255).
+
+    Masks and prints are always PNG: a lossy format (JPEG) changes grey levels, that is
+    the dose, so a name that does not end in .png is an error rather than a hint."""
     path = Path(path)
+    check_png_name(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     a = np.asarray(arr)
     if a.dtype == bool:
         a = a.astype(np.uint8) * 255
     if a.dtype != np.uint8:
         raise TypeError(f"write_png expects uint8 or bool, got {a.dtype} for {path}")
-    Image.fromarray(a, mode="L").save(path, optimize=False, compress_level=3)
+    Image.fromarray(a, mode="L").save(path, format="PNG", optimize=False, compress_level=3)
+
+
+def check_png_name(path) -> None:
+    """A mask or print file name must end in .png (written lossless)."""
+    if Path(path).suffix.lower() != ".png":
+        raise InputError(path, "masks are written as lossless PNG: give a name that ends in .png")
 
 
 def write_rgb(path, arr: np.ndarray) -> None:
@@ -157,13 +167,36 @@ def write_tiff16(path, arr: np.ndarray) -> None:
 # ---------------------------------------------------------------------- YAML / TSV
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, except that a key given twice in one mapping is an error
+    (PyYAML keeps the last one silently: of two values given for one setting, the
+    second would win unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node)
+            except TypeError:  # an unhashable key: PyYAML's own error says so
+                break
+            if first is not key_node:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"key {key!r} appears twice (lines {first.start_mark.line + 1} and {key_node.start_mark.line + 1})")
+        return super().construct_mapping(node, deep)
+
+
 def read_yaml(path) -> dict:
+    """A YAML mapping; a missing file, text that is not YAML (or not text) and duplicate
+    keys are errors naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "file does not exist")
+        raise InputError(path, "file does not exist" if not path.is_dir() else "is a folder, not a YAML file")
     try:
-        with open(path) as fh:
-            data = yaml.safe_load(fh)
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.load(fh, Loader=_UniqueKeyLoader)  # a SafeLoader
+    except (UnicodeDecodeError, yaml.reader.ReaderError):
+        raise InputError(path, "not a text (YAML) file") from None
     except yaml.YAMLError as exc:
         raise InputError(path, f"not valid YAML ({exc})") from exc
     if data is None:
@@ -224,51 +257,117 @@ def read_tsv(path) -> list[dict]:
 # -------------------------------------------------------------------- print batch
 
 
+def _number(path, key, v, minimum: float = 0.0, strict: bool = True) -> float:
+    """A finite real number above ``minimum`` (at least, unless ``strict``). A bool is
+    not a number here, although Python says it is: YAML reads `yes` and `true` as one."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputError(path, f"field {key!r} must be a number, found {v!r}")
+    if v < minimum or (strict and v == minimum):
+        what = "a positive number" if strict and minimum == 0 else f"a number {'>' if strict else '>='} {minimum:g}"
+        raise InputError(path, f"field {key!r} must be {what}, found {v!r}")
+    return float(v)
+
+
+def _text(path, key, v) -> str:
+    if not isinstance(v, str):
+        raise InputError(path, f"field {key!r} must be text, found {v!r} (put it in quotes)")
+    return v
+
+
+def _rotation(path, key, v) -> tuple[float, float]:
+    """A number r >= 0 (meaning -r..r) or a pair [lo, hi], within -180..180 degrees."""
+    if isinstance(v, list):
+        if len(v) != 2:
+            raise InputError(path, f"field {key!r} must be a number r (-r..r) or a pair [lo, hi], found {v!r}")
+        lo, hi = (_number(path, key, x, minimum=-180, strict=False) for x in v)
+    else:
+        hi = _number(path, key, v, strict=False)
+        lo = -hi
+    if not -180 <= lo <= hi <= 180:
+        raise InputError(path, f"field {key!r}: the range {v!r} must lie within -180..180 degrees with lo <= hi")
+    return lo, hi
+
+
+def _factors(path, key, v) -> dict:
+    if not isinstance(v, dict):
+        raise InputError(path, f"field {key!r} must map names to exposure factors, found {v!r}")
+    return {str(k): _number(path, f"{key}.{k}", x) for k, x in v.items()}
+
+
+# batch.yaml: field -> (required, reader of its value). The data contract is docs/design.md.
+BATCH_FIELDS = {
+    "pixel_size_um": (True, _number),  # DMD pixel at the sample (Guan et al. 2022: 2.96 um)
+    "exposure_s": (True, _number),
+    "max_intensity_mw_cm2": (True, _number),
+    "material": (True, _text),
+    "notes": (False, _text),
+    "camera_offset_adu": (False, lambda path, key, v: _number(path, key, v, strict=False)),
+    "image_pixel_size_um": (False, _number),  # the camera pixel at the sample
+    "image_rotation_deg": (False, _rotation),
+    "layer_um": (False, _number),
+    "z_step_um": (False, _number),
+    "source_batch": (False, _text),  # registration: the batch the prints come from
+    "exposure_factors": (False, _factors),  # a benchmark print job: id suffix -> factor of exposure_s
+}
+
+
 @dataclass(frozen=True)
 class BatchMeta:
+    """batch.yaml of a print batch, checked (``read_batch_meta``); optional fields are
+    None when absent, except ``notes`` ("") and ``camera_offset_adu`` (0)."""
+
     pixel_size_um: float
     exposure_s: float
     max_intensity_mw_cm2: float
     material: str
     notes: str = ""
+    camera_offset_adu: float = 0.0
+    image_pixel_size_um: float | None = None
+    image_rotation_deg: tuple[float, float] | None = None
+    layer_um: float | None = None
+    z_step_um: float | None = None
+    source_batch: str | None = None
+    exposure_factors: dict | None = None
 
     def as_dict(self) -> dict:
-        return dict(
-            pixel_size_um=self.pixel_size_um,
-            exposure_s=self.exposure_s,
-            max_intensity_mw_cm2=self.max_intensity_mw_cm2,
-            material=self.material,
-            notes=self.notes,
-        )
+        """The fields that are set, as batch.yaml holds them."""
+        d = {k: getattr(self, k) for k in BATCH_FIELDS}
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items() if v is not None}
 
 
-_POSITIVE_FIELDS = ("pixel_size_um", "exposure_s", "max_intensity_mw_cm2")
+def check_batch_meta(data: dict, path) -> BatchMeta:
+    """batch.yaml's mapping checked field by field; ``path`` names it in errors.
+
+    A misspelt field is an error (with the likely intended name), not a field that is
+    silently absent: a lost ``camera_offset_adu`` would quietly shift every threshold.
+    """
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a YAML mapping at the top level")
+    for key in data:
+        if key not in BATCH_FIELDS:
+            near = difflib.get_close_matches(str(key), BATCH_FIELDS, n=1)
+            hint = f"did you mean {near[0]!r}?" if near else f"known fields: {', '.join(BATCH_FIELDS)}"
+            raise InputError(path, f"unknown field {key!r}; {hint}")
+    vals = {}
+    for key, (required, read) in BATCH_FIELDS.items():
+        if data.get(key) is None:
+            if required:
+                raise InputError(path, f"missing field {key!r}")
+            continue
+        vals[key] = read(path, key, data[key])
+    if not 0.1 <= vals["pixel_size_um"] <= 100:
+        raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
+    if not vals["material"].strip():
+        raise InputError(path, "field 'material' must be a non-empty string")
+    return BatchMeta(**vals)
 
 
 def read_batch_meta(path) -> BatchMeta:
-    """batch.yaml of a print batch, checked field by field."""
+    """batch.yaml of a print batch (the file, or the batch folder), checked field by field."""
     path = Path(path)
-    data = read_yaml(path)
-    for key in _POSITIVE_FIELDS + ("material",):
-        if key not in data:
-            raise InputError(path, f"missing field {key!r}")
-    vals = {}
-    for key in _POSITIVE_FIELDS:
-        v = data[key]
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise InputError(path, f"field {key!r} must be a number, found {v!r}") from None
-        if not math.isfinite(f) or f <= 0:
-            raise InputError(path, f"field {key!r} must be a positive number, found {v!r}")
-        vals[key] = f
-    if not 0.1 <= vals["pixel_size_um"] <= 100:
-        raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
-    material = data["material"]
-    if not isinstance(material, str) or not material.strip():
-        raise InputError(path, "field 'material' must be a non-empty string")
-    notes = data.get("notes") or ""
-    return BatchMeta(material=material, notes=str(notes), **vals)
+    if path.is_dir():
+        path = path / "batch.yaml"
+    return check_batch_meta(read_yaml(path), path)
 
 
 @dataclass(frozen=True)
@@ -296,10 +395,15 @@ def open_batch(root) -> Batch:
     for d in (mdir, idir):
         if not d.is_dir():
             raise InputError(d, "folder missing from the batch")
-    masks = {p.stem: p for p in sorted(mdir.iterdir()) if p.is_file() and not p.name.startswith(".")}
-    for stem, p in masks.items():
+    masks: dict[str, Path] = {}
+    for p in sorted(mdir.iterdir()):
+        if not p.is_file() or p.name.startswith("."):
+            continue
         if p.suffix.lower() != ".png":
             raise InputError(p, "masks must be .png files")
+        if p.stem in masks:
+            raise InputError(p, f"two masks for the same id {p.stem!r}: {masks[p.stem].name} and {p.name}")
+        masks[p.stem] = p
     images: dict[str, Path] = {}
     for p in sorted(idir.iterdir()):
         if not p.is_file() or p.name.startswith("."):
