@@ -70,7 +70,8 @@ def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
     from .lab import print_batch, read_job
 
     exposures = read_job(job_tsv) if job_tsv else None
-    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures)
+    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures,
+                       inputs=[job_tsv] if job_tsv else ())
     click.echo(f"printed and imaged {len(rows)} masks into {out_batch}")
 
 
@@ -375,8 +376,12 @@ def benchmark_simulate(designs_dir, out_dir, params_path, methods, doses):
 def benchmark_score(prints_dir, designs_dir, out_dir):
     """Score a registered benchmark batch (PRINTS_DIR from `unscatter register`) against the designs."""
     from .benchmark import score_measured
+    from .io import output_dir
 
-    _summary_lines(score_measured(prints_dir, designs_dir, out_dir))
+    # here, not in score_measured: the workflow writes its scores beside the benchmark's other outputs
+    with output_dir(out_dir, command="benchmark score", inputs=[prints_dir, designs_dir]) as tmp:
+        rows = score_measured(prints_dir, designs_dir, tmp)
+    _summary_lines(rows)
 
 
 @main.command("report")
