@@ -455,7 +455,7 @@ def train(
         opt_s = torch.optim.Adam(slave.parameters(), lr=s["lr"], betas=s["betas"])
         state = dict(epoch=0, iteration=0, log=[], seconds=[])
         ck = out / "checkpoint.pt"
-        c = torch.load(ck, map_location="cpu", weights_only=True) if resume and ck.is_file() else None
+        c = _load_checkpoint(ck) if resume and ck.is_file() else None
         if c is not None:
             fixed = {k: v for k, v in s.items() if k not in _RESUMABLE}
             prev = {k: v for k, v in c["settings"].items() if k not in _RESUMABLE}
