@@ -7,7 +7,7 @@ For every design, the masks printed are
 - the identical mask (the design itself) at 100, 75, 70 and 50 % grey, as an operator
   would tune the dose of a plain mask (Guan et al. 2022, 'Results');
 
-each at the nominal exposure and, for the PV band, at 90 % and 110 % of it (design.md,
+each at the nominal exposure and, for the PV band, at 90 % and 110 % of it (docs/design.md,
 'Metrics'). The 110 % print cannot be a mask value (255 is the most a mirror gives), so
 the PV prints change the exposure (time or lamp power), as dose drift does.
 
@@ -50,7 +50,7 @@ log = logging.getLogger(__name__)
 IDENTICAL = "identical"
 # Guan et al. 2022, 'Results': identical masks at 100, 75, 70 and 50 % grey (Fig. 6 shows 100/75/70).
 IDENTICAL_DOSES = (1.0, 0.75, 0.70, 0.50)
-# design.md, 'Metrics': the PV band is between prints at 90 % and 110 % of the nominal dose.
+# docs/design.md, 'Metrics': the PV band is between prints at 90 % and 110 % of the nominal dose.
 PV_EXPOSURES = (0.9, 1.1)
 
 COLUMNS = ["design", "method", "mask_dose", "variant", "status", "iou", "pixel_error", "epe_um", "pv_band_um",

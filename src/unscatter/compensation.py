@@ -56,7 +56,7 @@ ILT_DEFAULTS = dict(
     sparsity=0.02,  # weight of the mean mask dose outside the dilated design
     margin_px=None,  # dilation of the design for the sparsity term; None: two kernel sigmas
     robust=False,  # optimise over 90/100/110 % of the nominal dose at once
-    doses=(0.9, 1.0, 1.1),  # the robust doses (design.md, 'Metrics': the PV band's 90 and 110 %)
+    doses=(0.9, 1.0, 1.1),  # the robust doses (docs/design.md, 'Metrics': the PV band's 90 and 110 %)
     init_logit=3.0,  # start: sigmoid(+-3) = 0.95 / 0.05 dose; also the clip of a given start mask
     # torch CPU threads while optimising (None: leave torch's setting). One: a second thread
     # gains ~10 % on these small FFTs and loses several times that on a busy machine.
