@@ -190,7 +190,7 @@ def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
         write_png(reg / f"{pid}.png", simulate(params.with_values(T=0.5 / e), read_mask(pid_path)))
         qc.append(dict(id=pid, status="ok", mask=f"../job/masks/{pid}.png"))
     write_tsv(reg / "qc.tsv", qc)
-    write_yaml(reg / "batch.yaml", dict(pixel_size_um=PX_UM))
+    write_yaml(reg / "batch.yaml", dict(pixel_size_um=PX_UM, exposure_s=20, max_intensity_mw_cm2=20.8, material="test"))
     measured = score_measured(reg, designs, tmp_path / "scored")
     key = lambda r: (r["design"], r["method"], r["mask_dose"])  # noqa: E731
     a = {key(r): r for r in rows}

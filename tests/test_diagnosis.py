@@ -227,7 +227,7 @@ def test_unknown_effects_and_models_are_rejected(tmp_path):
     (tmp_path / "p.yaml").write_text(text)
     from unscatter.io import InputError
 
-    with pytest.raises(InputError, match="unknown model"):
+    with pytest.raises(InputError, match="unknown effect 'glow' .*known: .*heavy_tail"):
         load_params(tmp_path / "p.yaml")
 
 

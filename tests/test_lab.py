@@ -73,7 +73,7 @@ def test_density_is_half_saturated_at_the_threshold():
 
 
 def test_nothing_outside_the_lab_imports_it():
-    """design.md: the virtual lab is not the model."""
+    """docs/design.md: the virtual lab is not the model."""
     for py in SRC.rglob("*.py"):
         if "lab" in py.relative_to(SRC).parts[:1]:
             continue

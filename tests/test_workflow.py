@@ -248,6 +248,39 @@ def test_duplicate_batch_names_fail_clearly(tmp_path):
     assert "have the same name 'same'" in proc.stdout
 
 
+def test_a_batch_path_is_named_by_its_resolved_folder(tmp_path):
+    batch = fake_batch(tmp_path, "session1")
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches",
+                       batches=[str(batch / "masks" / "..")])
+    assert ("register_prints", "batch=session1") in planned(configs=[cfg])
+
+
+@pytest.mark.parametrize("entry", ["..", ".", ".hidden", "{tmp}/.hidden/masks/.."])
+def test_batch_names_must_be_plain_names(tmp_path, entry):
+    """A batch named '..' would make results/prints/.. the results folder itself, which
+    Snakemake deletes before it registers the batch."""
+    fake_batch(tmp_path, ".hidden")
+    entry = entry.format(tmp=tmp_path)
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[entry])
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "config: batches" in proc.stdout and "not a plain folder name" in proc.stdout
+    assert "Job stats" not in proc.stdout
+
+
+@pytest.mark.parametrize("results", ["data", "data/results", ".", "..", "{batch}/results"])
+def test_results_keeps_clear_of_the_users_data(tmp_path, results):
+    batch = fake_batch(tmp_path, "session1")
+    cfg = write_config(tmp_path / "c.yaml", results=results.format(batch=batch), source="batches", batches=[str(batch)])
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "config: results:" in proc.stdout and "Job stats" not in proc.stdout
+
+
+def test_unknown_calibration_model_fails_before_planning(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), calibration={"model": "eq2"})
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "'eq2' is not one of ['eq1']" in proc.stdout and "Job stats" not in proc.stdout
+
+
 # ---------------------------------------------------------------------- real run
 @pytest.mark.slow
 def test_trial_masks_and_virtual_lab_real_run(tmp_path):

@@ -19,17 +19,20 @@ attrs    format, unscatter_version, params (params.yaml as a mapping), params_pa
 ```
 
 One sample per chunk makes a random read by the trainer one small file per array.
+Every chunk is stored, empty prints too, and ``attrs["chunks"]`` counts them, so a store
+that lost files is recognised on opening instead of read as empty prints.
 Mask ``i`` depends only on (seed, i) and the simulation is deterministic, so the
 arrays do not depend on the number of workers. The store is written under a temporary
-name and renamed when complete.
+name and renamed when complete (``io.output_dir``); an existing folder is replaced only
+when it is an augmentation store itself.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
-import shutil
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -38,11 +41,12 @@ from pathlib import Path
 import numpy as np
 
 from . import __version__
-from .io import InputError
+from .io import InputError, output_dir
 
 log = logging.getLogger(__name__)
 
 FORMAT = "unscatter-augment/1"
+ARRAYS = ("masks", "prints", "family", "train", "test")
 TEST_FRACTION = 0.1  # Guan et al. 2022, 'Neural network training': 3,600 / 400 of 4,000
 
 
@@ -71,12 +75,12 @@ def _make_block(job: tuple) -> dict:
     from .model import load_params, simulate
 
     store, params_path, seed, size, fams, i0, i1, device = job
-    params = load_params(params_path)
+    params = load_params(params_path, check_prints=False)  # augment() checked it once
     masks = np.stack([augmentation_mask(f, seed, i, size) for i, f in zip(range(i0, i1), fams)])
     prints = simulate(params, list(masks), device=device, batch=len(masks))
     g = zarr.open_group(store, mode="r+")
-    g["masks"][i0:i1] = masks
-    g["prints"][i0:i1] = prints
+    for name, data in (("masks", masks), ("prints", prints)):  # empty prints too: see the module's docstring
+        g[name].with_config({"write_empty_chunks": True})[i0:i1] = data
     return dict(i0=i0, print_px=prints.reshape(len(prints), -1).sum(1))
 
 
@@ -111,7 +115,8 @@ def augment(
     core) each generate, simulate and write blocks of ``block`` samples, with one torch
     thread each (the FFTs, OpenCV and zstd release the GIL; threads, unlike processes,
     need no re-import of the caller's main module). ``device``: where to simulate (default: the GPU when there is
-    one, then in this process). An existing ``out_zarr`` is replaced.
+    one, then in this process). An existing ``out_zarr`` is replaced if it is an
+    augmentation store; any other non-empty folder is an error.
     Returns a summary (the store's attributes plus the elapsed time).
     """
     import torch
@@ -139,70 +144,80 @@ def augment(
     workers = max(1, min(int(workers), math.ceil(count / block)))
 
     out = Path(out_zarr)
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    g = zarr.open_group(str(tmp), mode="w")
-    comp = ZstdCodec(level=1)
-    g.create_array("masks", shape=(count, size, size), chunks=(1, size, size), dtype="uint8", compressors=comp, fill_value=0)
-    g.create_array("prints", shape=(count, size, size), chunks=(1, size, size), dtype="bool", compressors=comp, fill_value=False)
-    g.create_array("family", data=np.array([names.index(f) for f in labels], np.uint8), chunks=(count,))
-    g.create_array("train", data=train, chunks=(max(1, len(train)),))
-    g.create_array("test", data=test, chunks=(max(1, len(test)),))
+    with output_dir(out, command="augment", inputs=[params_path], recognise=is_store, marker=False) as tmp:
+        g = zarr.open_group(str(tmp), mode="w")
+        comp = ZstdCodec(level=1)
+        every = {"write_empty_chunks": True}  # a missing chunk then means a lost file, never an empty print
+        g.create_array("masks", shape=(count, size, size), chunks=(1, size, size), dtype="uint8", compressors=comp,
+                       fill_value=0, config=every)
+        g.create_array("prints", shape=(count, size, size), chunks=(1, size, size), dtype="bool", compressors=comp,
+                       fill_value=False, config=every)
+        g.create_array("family", data=np.array([names.index(f) for f in labels], np.uint8), chunks=(count,), config=every)
+        g.create_array("train", data=train, chunks=(max(1, len(train)),), config=every)
+        g.create_array("test", data=test, chunks=(max(1, len(test)),), config=every)
 
-    jobs = [
-        (str(tmp), str(params_path), int(seed), int(size), labels[i : min(i + block, count)], i, min(i + block, count), device)
-        for i in range(0, count, block)
-    ]
-    print_px = np.zeros(count, np.int64)
-    from tqdm import tqdm
+        jobs = [
+            (str(tmp), str(params_path), int(seed), int(size), labels[i : min(i + block, count)], i, min(i + block, count), device)
+            for i in range(0, count, block)
+        ]
+        print_px = np.zeros(count, np.int64)
+        from tqdm import tqdm
 
-    bar = tqdm(total=count, desc="augment", unit="pair", disable=not progress)
-    if workers == 1:
-        threads = torch.get_num_threads()
-        for job in jobs:
-            r = _make_block(job)
-            print_px[r["i0"] : r["i0"] + len(r["print_px"])] = r["print_px"]
-            bar.update(len(r["print_px"]))
-        torch.set_num_threads(threads)
-    else:
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            with ThreadPoolExecutor(workers) as ex:
-                for r in ex.map(_make_block, jobs):
-                    print_px[r["i0"] : r["i0"] + len(r["print_px"])] = r["print_px"]
-                    bar.update(len(r["print_px"]))
-        finally:
+        bar = tqdm(total=count, desc="augment", unit="pair", disable=not progress)
+        if workers == 1:
+            threads = torch.get_num_threads()
+            for job in jobs:
+                r = _make_block(job)
+                print_px[r["i0"] : r["i0"] + len(r["print_px"])] = r["print_px"]
+                bar.update(len(r["print_px"]))
             torch.set_num_threads(threads)
-    bar.close()
+        else:
+            threads = torch.get_num_threads()
+            torch.set_num_threads(1)
+            try:
+                with ThreadPoolExecutor(workers) as ex:
+                    for r in ex.map(_make_block, jobs):
+                        print_px[r["i0"] : r["i0"] + len(r["print_px"])] = r["print_px"]
+                        bar.update(len(r["print_px"]))
+            finally:
+                torch.set_num_threads(threads)
+        bar.close()
 
-    frac = print_px / float(size * size)
-    attrs = dict(
-        format=FORMAT,
-        unscatter_version=__version__,
-        params=params.to_dict(),
-        params_path=str(params_path),
-        model=params.model,
-        seed=int(seed),
-        count=int(count),
-        size=int(size),
-        family_names=names,
-        families={f: int(n) for f, n in counts.items()},
-        test_fraction=float(test_fraction),
-        split_seed=int(seed),
-        n_train=int(len(train)),
-        n_test=int(len(test)),
-        simulation="unscatter.model.simulate, hard threshold (Guan et al. 2022, Eq. 1)",
-        print_fraction=float(frac.mean()),
-        empty_prints=int((print_px == 0).sum()),
-        complete=True,
-    )
-    g.attrs.update(attrs)
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)
+        frac = print_px / float(size * size)
+        attrs = dict(
+            format=FORMAT,
+            unscatter_version=__version__,
+            params=params.to_dict(),
+            params_path=str(params_path),
+            model=params.model,
+            seed=int(seed),
+            count=int(count),
+            size=int(size),
+            family_names=names,
+            families={f: int(n) for f, n in counts.items()},
+            test_fraction=float(test_fraction),
+            split_seed=int(seed),
+            n_train=int(len(train)),
+            n_test=int(len(test)),
+            simulation="unscatter.model.simulate, hard threshold (Guan et al. 2022, Eq. 1)",
+            print_fraction=float(frac.mean()),
+            empty_prints=int((print_px == 0).sum()),
+            chunks={k: int(g[k].nchunks) for k in ARRAYS},
+            complete=True,
+        )
+        g.attrs.update(attrs)
     elapsed = time.perf_counter() - t0
     log.info("wrote %d pairs (%dx%d) to %s in %.1f s with %d worker(s)", count, size, size, out, elapsed, workers)
     return dict(attrs, path=str(out), elapsed_s=elapsed, workers=workers)
+
+
+def is_store(folder) -> bool:
+    """Whether ``folder`` is an augmentation store (its zarr.json says so)."""
+    try:
+        meta = json.loads((Path(folder) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and isinstance(meta.get("attributes"), dict) and meta["attributes"].get("format") == FORMAT
 
 
 # --------------------------------------------------------------------------- reading
@@ -291,4 +306,9 @@ def open_dataset(path) -> AugmentDataset:
             raise InputError(path, f"array {k!r} missing")
     if g["masks"].shape != g["prints"].shape:
         raise InputError(path, f"masks {g['masks'].shape} and prints {g['prints'].shape} differ in shape")
+    for k, n in (a.get("chunks") or {}).items():  # stores written before the count was kept are not checked
+        found = g[k].nchunks_initialized if k in g else 0
+        if found != n:
+            raise InputError(path, f"{n - found} of the {n} chunk files of {k!r} are missing (deleted, or not copied?); "
+                                   "write the store again with `unscatter augment`")
     return AugmentDataset(path, g)

@@ -7,7 +7,7 @@ For every design, the masks printed are
 - the identical mask (the design itself) at 100, 75, 70 and 50 % grey, as an operator
   would tune the dose of a plain mask (Guan et al. 2022, 'Results');
 
-each at the nominal exposure and, for the PV band, at 90 % and 110 % of it (design.md,
+each at the nominal exposure and, for the PV band, at 90 % and 110 % of it (docs/design.md,
 'Metrics'). The 110 % print cannot be a mask value (255 is the most a mirror gives), so
 the PV prints change the exposure (time or lamp power), as dose drift does.
 
@@ -37,21 +37,20 @@ from __future__ import annotations
 import logging
 import math
 import re
-import shutil
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from . import metrics
-from .io import InputError, list_pngs, read_mask, read_print, read_tsv, read_yaml, write_png, write_tsv, write_yaml
+from .io import InputError, list_pngs, output_dir, read_batch_meta, read_mask, read_print, read_tsv, write_png, write_tsv, write_yaml
 
 log = logging.getLogger(__name__)
 
 IDENTICAL = "identical"
 # Guan et al. 2022, 'Results': identical masks at 100, 75, 70 and 50 % grey (Fig. 6 shows 100/75/70).
 IDENTICAL_DOSES = (1.0, 0.75, 0.70, 0.50)
-# design.md, 'Metrics': the PV band is between prints at 90 % and 110 % of the nominal dose.
+# docs/design.md, 'Metrics': the PV band is between prints at 90 % and 110 % of the nominal dose.
 PV_EXPOSURES = (0.9, 1.1)
 
 COLUMNS = ["design", "method", "mask_dose", "variant", "status", "iou", "pixel_error", "epe_um", "pv_band_um",
@@ -285,13 +284,14 @@ def run_benchmark(designs_dir, masks_by_method: dict, out_dir, pixel_size_um: fl
 
     ``masks_by_method``: method -> folder of <design>.png (or dict design -> uint8 mask).
     ``printer(masks, exposures) -> prints``: e.g. ``simulator_printer(params)`` or
-    ``virtual_lab_printer(work_dir)``.
+    ``virtual_lab_printer(work_dir)``. ``out_dir``: a new folder or an earlier output of this function.
     """
     designs = _designs(designs_dir)
     masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band)
-    prints = printer(masks, exposures)
-    rows = score_prints(prints, designs, pixel_size_um)
-    write_results(rows, out_dir, designs, prints, masks, figures)
+    with output_dir(out_dir, command="benchmark simulate", inputs=[designs_dir, *masks_by_method.values()]) as tmp:
+        prints = printer(masks, exposures)
+        rows = score_prints(prints, designs, pixel_size_um)
+        write_results(rows, tmp, designs, prints, masks, figures)
     return rows
 
 
@@ -322,12 +322,17 @@ Ids: <design>__<method or identical_<grey %>>[__x<exposure %>]; job.tsv lists th
 
 def write_print_job(masks_by_method: dict, designs, out_dir, pv_band: bool = True, doses=IDENTICAL_DOSES,
                     batch_meta: dict | None = None) -> list[dict]:
-    """A print batch without images: masks/<id>.png, batch.yaml to fill in, README.txt, job.tsv."""
+    """A print batch without images: masks/<id>.png, batch.yaml to fill in, README.txt, job.tsv
+    (``out_dir``: a new folder or an earlier print job)."""
+    sources = [designs, *masks_by_method.values()]
     designs = _designs(designs)
     masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band)
-    out_dir = Path(out_dir)
-    if (out_dir / "masks").exists():
-        shutil.rmtree(out_dir / "masks")
+    with output_dir(out_dir, command="benchmark job", inputs=sources) as tmp:
+        return _write_job(masks, designs, masks_by_method, tmp, pv_band, doses, batch_meta)
+
+
+def _write_job(masks: dict, designs: dict, masks_by_method: dict, out_dir: Path, pv_band: bool, doses,
+               batch_meta: dict | None) -> list[dict]:
     # Guan et al. 2022, 'Bioprinting setup': 2.96 um per pixel, 20 s exposure, 20.8 mW/cm2 at grey 255
     meta = dict(pixel_size_um=2.96, exposure_s=20.0, max_intensity_mw_cm2=20.8, material="FILL IN",
                 notes="FILL IN: benchmark prints; ids ending __x090/__x110 printed at 90/110 % of exposure_s")
@@ -359,7 +364,7 @@ def score_measured(registered_prints_dir, designs_dir, out_dir, pixel_size_um: f
     """
     reg = Path(registered_prints_dir)
     if pixel_size_um is None:
-        pixel_size_um = float(read_yaml(reg / "batch.yaml")["pixel_size_um"])
+        pixel_size_um = read_batch_meta(reg).pixel_size_um
     prints = read_registered(reg)
     masks = {}
     if (reg / "qc.tsv").is_file():

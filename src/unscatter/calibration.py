@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from . import metrics
-from .io import InputError, read_mask, read_print, read_tsv, read_yaml, write_rgb, write_tsv
+from .io import InputError, output_dir, read_mask, read_print, read_tsv, read_yaml, write_rgb, write_tsv
 from .model import (
     FixedMasks,
     Params,
@@ -449,19 +449,22 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
     (red: measured but not simulated, blue: simulated but not measured) and fit.png.
     Returns the fitted Params. Raises InputError (naming the file or folder) for bad or
     uninformative input; a fit on a bound is flagged in params.yaml and warned about.
+    ``out_dir`` is a new folder or an earlier calibration, replaced when the fit is done.
     """
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
         raise TypeError(f"unknown calibration setting(s) {unknown}; known: {sorted(DEFAULTS)}")
     s = {**DEFAULTS, **settings}
-    if s["threads"]:
-        before = torch.get_num_threads()
-        torch.set_num_threads(int(s["threads"]))
+    inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
+    before = torch.get_num_threads()
+    with output_dir(out_dir, command="calibrate", inputs=inputs) as tmp:
+        if s["threads"]:
+            torch.set_num_threads(int(s["threads"]))
         try:
-            return _calibrate(prints_dirs, out_dir, model, seed, s)
+            params = _calibrate(prints_dirs, tmp, model, seed, s)
         finally:
             torch.set_num_threads(before)
-    return _calibrate(prints_dirs, out_dir, model, seed, s)
+    return params
 
 
 def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
@@ -566,8 +569,6 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     if boot_rows:
         write_tsv(out_dir / "bootstrap.tsv", boot_rows, ["replicate", "prints", "objective"] + space.names)
     if s["residual_maps"]:
-        for old in (out_dir / "residuals").glob("*.png"):  # maps of an earlier run on other prints
-            old.unlink()
         for lab, meas, sim in zip(data.labels, data.prints, sims):
             write_rgb(out_dir / "residuals" / f"{lab.replace('/', '__')}.png", residual_rgb(meas, sim))
     if s["figure"]:
@@ -693,7 +694,8 @@ def fit_figure(path, data: PrintSet, sims: np.ndarray, per_print: list, n: int =
 
 
 def simulate_dir(params_path, mask_dir, out_dir, device=None) -> list[Path]:
-    """Simulated binary prints (0/255) of every mask PNG in ``mask_dir`` as ``<id>.png``."""
+    """Simulated binary prints (0/255) of every mask PNG in ``mask_dir`` as ``<id>.png``
+    (``out_dir``: a new folder or an earlier output of this function)."""
     from .io import list_pngs, write_png
     from .model import load_params, simulate
 
@@ -701,14 +703,10 @@ def simulate_dir(params_path, mask_dir, out_dir, device=None) -> list[Path]:
     masks = list_pngs(mask_dir)
     if not masks:
         raise InputError(mask_dir, "no .png masks")
-    out_dir = Path(out_dir)
-    paths = []
-    for mid, p in masks.items():
-        pr = simulate(params, read_mask(p), device=device)
-        q = out_dir / f"{mid}.png"
-        write_png(q, pr)
-        paths.append(q)
-    return paths
+    with output_dir(out_dir, command="simulate", inputs=[params_path, mask_dir]) as tmp:
+        for mid, p in masks.items():
+            write_png(tmp / f"{mid}.png", simulate(params, read_mask(p), device=device))
+    return [Path(out_dir) / f"{mid}.png" for mid in masks]
 
 
 __all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "Space", "run_ga", "refine", "fit_params", "cross_validate",

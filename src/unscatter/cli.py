@@ -10,23 +10,37 @@ from pathlib import Path
 import click
 
 from . import __version__
-from .io import InputError
+from .io import InputError, check_png_name
+from .limits import REGISTRATION
+
+
+def _error_line(exc: Exception) -> str:
+    """One line for bad input (InputError: file and problem) or a file system error
+    (OSError: the path and what the system said, e.g. a read-only folder)."""
+    if isinstance(exc, OSError) and exc.filename is not None:
+        text = f"{exc.filename}: {exc.strerror or exc}"
+    else:
+        text = str(exc)
+    return " ".join(text.split())
 
 
 class _Group(click.Group):
-    """Bad input ends with one clear line (file: problem) and exit code 2, no traceback."""
+    """Bad input and file system errors end with one line (`error: file: problem`) and
+    exit code 2; with -v the traceback is shown instead."""
 
     def invoke(self, ctx):
         try:
             return super().invoke(ctx)
-        except InputError as exc:
-            click.echo(f"error: {exc}", err=True)
+        except (InputError, OSError) as exc:
+            if ctx.find_root().params.get("verbose"):
+                raise
+            click.echo(f"error: {_error_line(exc)}", err=True)
             ctx.exit(2)
 
 
 @click.group(cls=_Group)
 @click.version_option(__version__)
-@click.option("-v", "--verbose", is_flag=True, help="Debug logging.")
+@click.option("-v", "--verbose", is_flag=True, help="Debug logging, and tracebacks instead of one-line errors.")
 def main(verbose):
     """unscatter: compensate cell-induced light scattering in DLP bioprinting."""
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -70,17 +84,25 @@ def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
     from .lab import print_batch, read_job
 
     exposures = read_job(job_tsv) if job_tsv else None
-    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures)
+    rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures,
+                       inputs=[job_tsv] if job_tsv else ())
     click.echo(f"printed and imaged {len(rows)} masks into {out_batch}")
 
 
 # -------------------------------------------------------------------- register
+def _float_range(r) -> click.FloatRange:
+    """A click type for a ``limits.Range`` (the bounds the workflow schema has too)."""
+    return click.FloatRange(r.lo, r.hi, min_open=r.lo_open, max_open=r.hi_open)
+
+
 @main.command("register")
 @click.argument("batch_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--mode", type=click.Choice(["similarity", "affine"]), default="similarity", show_default=True)
-@click.option("--level", default=0.5, show_default=True, help="Print = density above this fraction of the batch's dense-polymer level.")
-@click.option("--min-score", default=0.6, show_default=True, help="QC: lowest registration score accepted.")
+@click.option("--level", default=0.5, show_default=True, type=_float_range(REGISTRATION["level"]),
+              help="Print = density above this fraction of the batch's dense-polymer level.")
+@click.option("--min-score", default=0.6, show_default=True, type=_float_range(REGISTRATION["min_score"]),
+              help="QC: lowest registration score accepted.")
 @click.option("--skip-failed/--no-skip-failed", default=False, show_default=True, help="Go on when a print fails QC (it is still never used).")
 def register(batch_dir, out_dir, mode, level, min_score, skip_failed):
     """Register and threshold the microscope images of a print batch to mask coordinates."""
@@ -256,6 +278,16 @@ def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, 
     click.echo(f"trained {r['epochs']} epochs ({sum(r['seconds_per_epoch']):.0f} s this run): {msg} -> {out_dir}")
 
 
+def _png_name(ctx, param, value):
+    """A mask file to write must be a PNG (a lossy format would change the dose)."""
+    if value is not None:
+        try:
+            check_png_name(value)
+        except InputError as exc:
+            raise click.BadParameter(str(exc)) from None
+    return value
+
+
 @main.command("compensate")
 @click.argument("design", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--model", "model_dir", type=click.Path(path_type=Path), required=True,
@@ -264,8 +296,9 @@ def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, 
 @click.option("--params", "params_path", type=click.Path(path_type=Path),
               help="nn+ilt: the calibrated params.yaml (or its folder) for the ILT refinement.")
 @click.option("--method", type=click.Choice(["nn", "ilt", "nn+ilt"]), default="nn", show_default=True)
-@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Mask PNG to write.")
-@click.option("--frame", "frame_png", type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, callback=_png_name,
+              help="Mask PNG to write.")
+@click.option("--frame", "frame_png", type=click.Path(dir_okay=False, path_type=Path), callback=_png_name,
               help="Also write the full 2560x1600 DMD frame with the mask in it (all other mirrors off).")
 @click.option("--offset", type=int, nargs=2, default=None, metavar="ROW COL",
               help="Top-left mirror of the mask in the DMD frame (default: centred).")
@@ -273,6 +306,9 @@ def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, 
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 def compensate_cmd(design, model_dir, params_path, method, output, frame_png, offset, robust, device):
     """The grayscale mask that prints DESIGN (PNG, nonzero = solid) despite the scattering."""
+    written = [output.resolve()] + ([frame_png.resolve()] if frame_png else [])
+    if design.resolve() in written or len(set(written)) < len(written):
+        raise click.UsageError("the design, the mask (-o) and the DMD frame (--frame) need three different files")
     if method == "ilt" and params_path is not None:
         raise click.UsageError("for --method ilt, --model is the params.yaml; --params is for nn+ilt")
     if method == "nn+ilt" and params_path is None:
@@ -280,10 +316,14 @@ def compensate_cmd(design, model_dir, params_path, method, output, frame_png, of
     if method == "nn" and robust:
         raise click.UsageError("--robust is an ILT setting (use --method ilt or nn+ilt)")
     _passive_threads()
-    from .compensation import compensate, write_mask_and_frame
+    from .compensation import compensate, frame_offset, write_mask_and_frame
     from .io import read_mask
 
     design_mask = read_mask(design)
+    try:  # before the optimisation, which takes a while
+        frame_offset(design_mask.shape, offset=offset)
+    except ValueError as exc:
+        raise InputError(design, str(exc)) from None
     settings = dict(device=device) if method == "nn" else dict(device=device, robust=robust)
     try:
         mask = compensate(design_mask, method, params_path=model_dir if method == "ilt" else params_path,
@@ -375,8 +415,12 @@ def benchmark_simulate(designs_dir, out_dir, params_path, methods, doses):
 def benchmark_score(prints_dir, designs_dir, out_dir):
     """Score a registered benchmark batch (PRINTS_DIR from `unscatter register`) against the designs."""
     from .benchmark import score_measured
+    from .io import output_dir
 
-    _summary_lines(score_measured(prints_dir, designs_dir, out_dir))
+    # here, not in score_measured: the workflow writes its scores beside the benchmark's other outputs
+    with output_dir(out_dir, command="benchmark score", inputs=[prints_dir, designs_dir]) as tmp:
+        rows = score_measured(prints_dir, designs_dir, tmp)
+    _summary_lines(rows)
 
 
 @main.command("report")

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from scipy import ndimage
 
-from .io import InputError, list_pngs, read_mask, write_png, write_tsv, write_yaml
+from .io import InputError, list_pngs, output_dir, read_mask, write_png, write_tsv, write_yaml
 from .model import Params, default_device, load_params
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ ILT_DEFAULTS = dict(
     sparsity=0.02,  # weight of the mean mask dose outside the dilated design
     margin_px=None,  # dilation of the design for the sparsity term; None: two kernel sigmas
     robust=False,  # optimise over 90/100/110 % of the nominal dose at once
-    doses=(0.9, 1.0, 1.1),  # the robust doses (design.md, 'Metrics': the PV band's 90 and 110 %)
+    doses=(0.9, 1.0, 1.1),  # the robust doses (docs/design.md, 'Metrics': the PV band's 90 and 110 %)
     init_logit=3.0,  # start: sigmoid(+-3) = 0.95 / 0.05 dose; also the clip of a given start mask
     # torch CPU threads while optimising (None: leave torch's setting). One: a second thread
     # gains ~10 % on these small FFTs and loses several times that on a busy machine.
@@ -259,19 +259,29 @@ def compensate(design, method: str, params_path=None, train_dir=None, **settings
 # ------------------------------------------------------------------------ DMD frame
 
 
+def frame_offset(shape: tuple[int, int], frame: tuple[int, int] = DMD_FRAME,
+                 offset: tuple[int, int] | None = None) -> tuple[int, int]:
+    """Where a mask of ``shape`` goes in the DMD frame (default centred); ValueError when it
+    does not fit. Cheap, so callers check a design before optimising its mask."""
+    fh, fw = (int(v) for v in frame)
+    h, w = (int(v) for v in shape)
+    if offset is None:
+        offset = ((fh - h) // 2, (fw - w) // 2)
+    oy, ox = (int(v) for v in offset)
+    if oy < 0 or ox < 0 or oy + h > fh or ox + w > fw:
+        raise ValueError(f"a {h}x{w} mask at offset ({oy}, {ox}) does not fit the {fh}x{fw} DMD frame")
+    return oy, ox
+
+
 def dmd_frame(mask: np.ndarray, frame: tuple[int, int] = DMD_FRAME, offset: tuple[int, int] | None = None) -> tuple[np.ndarray, tuple[int, int]]:
     """The full DMD frame (rows, cols) with ``mask`` at ``offset`` (row, col of its top-left
     mirror; default centred) and every other mirror off; and the offset used."""
     m = np.asarray(mask)
     if m.dtype != np.uint8 or m.ndim != 2:
         raise ValueError(f"a mask is a 2-D uint8 image, got {m.dtype} {m.shape}")
-    fh, fw = (int(v) for v in frame)
     h, w = m.shape
-    if offset is None:
-        offset = ((fh - h) // 2, (fw - w) // 2)
-    oy, ox = (int(v) for v in offset)
-    if oy < 0 or ox < 0 or oy + h > fh or ox + w > fw:
-        raise ValueError(f"a {h}x{w} mask at offset ({oy}, {ox}) does not fit the {fh}x{fw} DMD frame")
+    oy, ox = frame_offset(m.shape, frame, offset)
+    fh, fw = (int(v) for v in frame)
     out = np.zeros((fh, fw), np.uint8)
     out[oy : oy + h, ox : ox + w] = m
     return out, (oy, ox)
@@ -305,21 +315,28 @@ def select_designs(designs_dir, names=None) -> dict:
 def compensate_designs(designs_dir, out_dir, method: str, params_path=None, train_dir=None, frames: bool = True,
                        frame=DMD_FRAME, offset=None, names=None, **settings) -> list[dict]:
     """Compensate every design PNG of a folder (or those in ``names``): ``out_dir/<design>.png``,
-    the DMD frames in ``out_dir/frames/<design>.png``, and ``out_dir/compensation.tsv``."""
-    designs = select_designs(designs_dir, names)
-    out_dir = Path(out_dir)
+    the DMD frames in ``out_dir/frames/<design>.png``, and ``out_dir/compensation.tsv``.
+    Every design is checked against the DMD frame, and the printer loaded once, before
+    the first mask is optimised."""
+    designs = {name: as_design(read_mask(path)) for name, path in select_designs(designs_dir, names).items()}
+    for name, d in designs.items():
+        try:
+            frame_offset(d.shape, frame, offset)
+        except ValueError as exc:
+            raise InputError(Path(designs_dir) / f"{name}.png", str(exc)) from None
+    printer = load_printer(params_path) if method != "nn" and params_path is not None else params_path
     rows = []
-    for name, path in designs.items():
-        d = as_design(read_mask(path))
-        t = time.perf_counter()
-        mask = compensate(d, method, params_path=params_path, train_dir=train_dir, **settings)
-        seconds = time.perf_counter() - t
-        off = write_mask_and_frame(mask, out_dir / f"{name}.png", out_dir / "frames" / f"{name}.png" if frames else None, frame, offset)
-        rows.append(dict(design=name, method=method, seconds=seconds, offset_row=off[0], offset_col=off[1],
-                         mean_grey=float(mask.mean()), height=mask.shape[0], width=mask.shape[1]))
-        log.info("%s: %s mask in %.2f s", name, method, seconds)
-    write_tsv(out_dir / "compensation.tsv", rows)
-    write_yaml(out_dir / "compensation.yaml", dict(method=method, params=str(params_path) if params_path is not None else None,
+    with output_dir(out_dir, command="compensate", inputs=[designs_dir, params_path, train_dir]) as tmp:
+        for name, d in designs.items():
+            t = time.perf_counter()
+            mask = compensate(d, method, params_path=printer, train_dir=train_dir, **settings)
+            seconds = time.perf_counter() - t
+            off = write_mask_and_frame(mask, tmp / f"{name}.png", tmp / "frames" / f"{name}.png" if frames else None, frame, offset)
+            rows.append(dict(design=name, method=method, seconds=seconds, offset_row=off[0], offset_col=off[1],
+                             mean_grey=float(mask.mean()), height=mask.shape[0], width=mask.shape[1]))
+            log.info("%s: %s mask in %.2f s", name, method, seconds)
+        write_tsv(tmp / "compensation.tsv", rows)
+        write_yaml(tmp / "compensation.yaml", dict(method=method, params=str(params_path) if params_path is not None else None,
                                                    train_dir=str(train_dir) if train_dir is not None else None,
                                                    frame=list(frame), settings={k: v for k, v in settings.items()}))
     return rows

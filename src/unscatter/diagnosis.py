@@ -54,7 +54,7 @@ from scipy import ndimage
 from . import metrics
 from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
 from .calibration import Objective, Space, band_factor, fit_params, grid_factor, load_prints, residual_rgb
-from .io import InputError, write_tsv
+from .io import InputError, output_dir, write_tsv
 from .model import (
     EFFECTS,
     FixedMasks,
@@ -526,11 +526,14 @@ def diagnose(prints_dirs, base_params, out_dir, folds: int | None = None, seed: 
         raise ValueError("the diagnosis needs k-fold held-out residuals: folds >= 2")
     threads = s["threads"] or os.cpu_count() or 1
     before = torch.get_num_threads()
-    torch.set_num_threads(int(threads))
-    try:
-        return _diagnose(prints_dirs, base_params, Path(out_dir), seed, candidates, progress, s)
-    finally:
-        torch.set_num_threads(before)
+    inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
+    with output_dir(out_dir, command="diagnose", inputs=inputs + [base_params]) as tmp:
+        torch.set_num_threads(int(threads))
+        try:
+            r = _diagnose(prints_dirs, base_params, tmp, seed, candidates, progress, s)
+        finally:
+            torch.set_num_threads(before)
+    return dict(r, out_dir=str(out_dir))
 
 
 def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, progress: bool, s: dict) -> dict:

@@ -7,8 +7,14 @@ is wrong with it).
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import difflib
+import logging
 import math
+import os
+import secrets
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,16 +22,19 @@ import numpy as np
 import yaml
 from PIL import Image
 
+log = logging.getLogger(__name__)
+
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
 
 
 class InputError(ValueError):
-    """Bad input: the message names the file and what is wrong with it."""
+    """Bad input: the message names the file and what is wrong with it, on one line
+    (the command line prints it as it is)."""
 
     def __init__(self, path, problem: str):
         self.path = Path(path)
-        self.problem = problem
-        super().__init__(f"{path}: {problem}")
+        self.problem = " ".join(str(problem).split())  # library messages may span lines
+        super().__init__(f"{path}: {self.problem}")
 
 
 # --------------------------------------------------------------------------- masks
@@ -53,15 +62,25 @@ def read_mask(path) -> np.ndarray:
 
 
 def write_png(path, arr: np.ndarray) -> None:
-    """Write an 8-bit grayscale PNG (bool arrays become 0/255)."""
+    """Write an 8-bit grayscale PNG (bool arrays become 0/255).
+
+    Masks and prints are always PNG: a lossy format (JPEG) changes grey levels, that is
+    the dose, so a name that does not end in .png is an error rather than a hint."""
     path = Path(path)
+    check_png_name(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     a = np.asarray(arr)
     if a.dtype == bool:
         a = a.astype(np.uint8) * 255
     if a.dtype != np.uint8:
         raise TypeError(f"write_png expects uint8 or bool, got {a.dtype} for {path}")
-    Image.fromarray(a, mode="L").save(path, optimize=False, compress_level=3)
+    Image.fromarray(a, mode="L").save(path, format="PNG", optimize=False, compress_level=3)
+
+
+def check_png_name(path) -> None:
+    """A mask or print file name must end in .png (written lossless)."""
+    if Path(path).suffix.lower() != ".png":
+        raise InputError(path, "masks are written as lossless PNG: give a name that ends in .png")
 
 
 def write_rgb(path, arr: np.ndarray) -> None:
@@ -148,13 +167,36 @@ def write_tiff16(path, arr: np.ndarray) -> None:
 # ---------------------------------------------------------------------- YAML / TSV
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, except that a key given twice in one mapping is an error
+    (PyYAML keeps the last one silently: of two values given for one setting, the
+    second would win unseen)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                first = seen.setdefault(key, key_node)
+            except TypeError:  # an unhashable key: PyYAML's own error says so
+                break
+            if first is not key_node:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"key {key!r} appears twice (lines {first.start_mark.line + 1} and {key_node.start_mark.line + 1})")
+        return super().construct_mapping(node, deep)
+
+
 def read_yaml(path) -> dict:
+    """A YAML mapping; a missing file, text that is not YAML (or not text) and duplicate
+    keys are errors naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise InputError(path, "file does not exist")
+        raise InputError(path, "file does not exist" if not path.is_dir() else "is a folder, not a YAML file")
     try:
-        with open(path) as fh:
-            data = yaml.safe_load(fh)
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.load(fh, Loader=_UniqueKeyLoader)  # a SafeLoader
+    except (UnicodeDecodeError, yaml.reader.ReaderError):
+        raise InputError(path, "not a text (YAML) file") from None
     except yaml.YAMLError as exc:
         raise InputError(path, f"not valid YAML ({exc})") from exc
     if data is None:
@@ -215,51 +257,117 @@ def read_tsv(path) -> list[dict]:
 # -------------------------------------------------------------------- print batch
 
 
+def _number(path, key, v, minimum: float = 0.0, strict: bool = True) -> float:
+    """A finite real number above ``minimum`` (at least, unless ``strict``). A bool is
+    not a number here, although Python says it is: YAML reads `yes` and `true` as one."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise InputError(path, f"field {key!r} must be a number, found {v!r}")
+    if v < minimum or (strict and v == minimum):
+        what = "a positive number" if strict and minimum == 0 else f"a number {'>' if strict else '>='} {minimum:g}"
+        raise InputError(path, f"field {key!r} must be {what}, found {v!r}")
+    return float(v)
+
+
+def _text(path, key, v) -> str:
+    if not isinstance(v, str):
+        raise InputError(path, f"field {key!r} must be text, found {v!r} (put it in quotes)")
+    return v
+
+
+def _rotation(path, key, v) -> tuple[float, float]:
+    """A number r >= 0 (meaning -r..r) or a pair [lo, hi], within -180..180 degrees."""
+    if isinstance(v, list):
+        if len(v) != 2:
+            raise InputError(path, f"field {key!r} must be a number r (-r..r) or a pair [lo, hi], found {v!r}")
+        lo, hi = (_number(path, key, x, minimum=-180, strict=False) for x in v)
+    else:
+        hi = _number(path, key, v, strict=False)
+        lo = -hi
+    if not -180 <= lo <= hi <= 180:
+        raise InputError(path, f"field {key!r}: the range {v!r} must lie within -180..180 degrees with lo <= hi")
+    return lo, hi
+
+
+def _factors(path, key, v) -> dict:
+    if not isinstance(v, dict):
+        raise InputError(path, f"field {key!r} must map names to exposure factors, found {v!r}")
+    return {str(k): _number(path, f"{key}.{k}", x) for k, x in v.items()}
+
+
+# batch.yaml: field -> (required, reader of its value). The data contract is docs/design.md.
+BATCH_FIELDS = {
+    "pixel_size_um": (True, _number),  # DMD pixel at the sample (Guan et al. 2022: 2.96 um)
+    "exposure_s": (True, _number),
+    "max_intensity_mw_cm2": (True, _number),
+    "material": (True, _text),
+    "notes": (False, _text),
+    "camera_offset_adu": (False, lambda path, key, v: _number(path, key, v, strict=False)),
+    "image_pixel_size_um": (False, _number),  # the camera pixel at the sample
+    "image_rotation_deg": (False, _rotation),
+    "layer_um": (False, _number),
+    "z_step_um": (False, _number),
+    "source_batch": (False, _text),  # registration: the batch the prints come from
+    "exposure_factors": (False, _factors),  # a benchmark print job: id suffix -> factor of exposure_s
+}
+
+
 @dataclass(frozen=True)
 class BatchMeta:
+    """batch.yaml of a print batch, checked (``read_batch_meta``); optional fields are
+    None when absent, except ``notes`` ("") and ``camera_offset_adu`` (0)."""
+
     pixel_size_um: float
     exposure_s: float
     max_intensity_mw_cm2: float
     material: str
     notes: str = ""
+    camera_offset_adu: float = 0.0
+    image_pixel_size_um: float | None = None
+    image_rotation_deg: tuple[float, float] | None = None
+    layer_um: float | None = None
+    z_step_um: float | None = None
+    source_batch: str | None = None
+    exposure_factors: dict | None = None
 
     def as_dict(self) -> dict:
-        return dict(
-            pixel_size_um=self.pixel_size_um,
-            exposure_s=self.exposure_s,
-            max_intensity_mw_cm2=self.max_intensity_mw_cm2,
-            material=self.material,
-            notes=self.notes,
-        )
+        """The fields that are set, as batch.yaml holds them."""
+        d = {k: getattr(self, k) for k in BATCH_FIELDS}
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in d.items() if v is not None}
 
 
-_POSITIVE_FIELDS = ("pixel_size_um", "exposure_s", "max_intensity_mw_cm2")
+def check_batch_meta(data: dict, path) -> BatchMeta:
+    """batch.yaml's mapping checked field by field; ``path`` names it in errors.
+
+    A misspelt field is an error (with the likely intended name), not a field that is
+    silently absent: a lost ``camera_offset_adu`` would quietly shift every threshold.
+    """
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a YAML mapping at the top level")
+    for key in data:
+        if key not in BATCH_FIELDS:
+            near = difflib.get_close_matches(str(key), BATCH_FIELDS, n=1)
+            hint = f"did you mean {near[0]!r}?" if near else f"known fields: {', '.join(BATCH_FIELDS)}"
+            raise InputError(path, f"unknown field {key!r}; {hint}")
+    vals = {}
+    for key, (required, read) in BATCH_FIELDS.items():
+        if data.get(key) is None:
+            if required:
+                raise InputError(path, f"missing field {key!r}")
+            continue
+        vals[key] = read(path, key, data[key])
+    if not 0.1 <= vals["pixel_size_um"] <= 100:
+        raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
+    if not vals["material"].strip():
+        raise InputError(path, "field 'material' must be a non-empty string")
+    return BatchMeta(**vals)
 
 
 def read_batch_meta(path) -> BatchMeta:
-    """batch.yaml of a print batch, checked field by field."""
+    """batch.yaml of a print batch (the file, or the batch folder), checked field by field."""
     path = Path(path)
-    data = read_yaml(path)
-    for key in _POSITIVE_FIELDS + ("material",):
-        if key not in data:
-            raise InputError(path, f"missing field {key!r}")
-    vals = {}
-    for key in _POSITIVE_FIELDS:
-        v = data[key]
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise InputError(path, f"field {key!r} must be a number, found {v!r}") from None
-        if not math.isfinite(f) or f <= 0:
-            raise InputError(path, f"field {key!r} must be a positive number, found {v!r}")
-        vals[key] = f
-    if not 0.1 <= vals["pixel_size_um"] <= 100:
-        raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
-    material = data["material"]
-    if not isinstance(material, str) or not material.strip():
-        raise InputError(path, "field 'material' must be a non-empty string")
-    notes = data.get("notes") or ""
-    return BatchMeta(material=material, notes=str(notes), **vals)
+    if path.is_dir():
+        path = path / "batch.yaml"
+    return check_batch_meta(read_yaml(path), path)
 
 
 @dataclass(frozen=True)
@@ -287,10 +395,15 @@ def open_batch(root) -> Batch:
     for d in (mdir, idir):
         if not d.is_dir():
             raise InputError(d, "folder missing from the batch")
-    masks = {p.stem: p for p in sorted(mdir.iterdir()) if p.is_file() and not p.name.startswith(".")}
-    for stem, p in masks.items():
+    masks: dict[str, Path] = {}
+    for p in sorted(mdir.iterdir()):
+        if not p.is_file() or p.name.startswith("."):
+            continue
         if p.suffix.lower() != ".png":
             raise InputError(p, "masks must be .png files")
+        if p.stem in masks:
+            raise InputError(p, f"two masks for the same id {p.stem!r}: {masks[p.stem].name} and {p.name}")
+        masks[p.stem] = p
     images: dict[str, Path] = {}
     for p in sorted(idir.iterdir()):
         if not p.is_file() or p.name.startswith("."):
@@ -316,3 +429,153 @@ def list_pngs(folder) -> dict:
     if not folder.is_dir():
         raise InputError(folder, "folder does not exist")
     return {p.stem: p for p in sorted(folder.glob("*.png"))}
+
+
+# ------------------------------------------------------------------ output folders
+
+# The file by which a folder is known as the output of one of our commands: it names the
+# command and lists the files the command wrote.
+OUTPUT_MARKER = ".unscatter-output.yaml"
+# Files that tools put into an output folder of ours (Snakemake's mtime carrier).
+_FOREIGN_OK = {OUTPUT_MARKER, ".snakemake_timestamp"}
+
+
+def _read_marker(folder: Path) -> dict | None:
+    try:
+        with open(folder / OUTPUT_MARKER, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    return data if isinstance(data, dict) and isinstance(data.get("command"), str) else None
+
+
+def _files(folder: Path) -> list[str]:
+    """Every file below ``folder``, as paths relative to it (marker left out)."""
+    out = []
+    for root, _dirs, names in os.walk(folder):
+        for name in names:
+            rel = Path(root, name).relative_to(folder).as_posix()
+            if rel not in _FOREIGN_OK:
+                out.append(rel)
+    return sorted(out)
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def check_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
+    """Refuse to write ``command``'s output folder ``path`` where that would lose data.
+
+    The folder must not be, contain or lie inside any of ``inputs`` (paths compared
+    after resolving symbolic links; entries that are not paths are skipped). If it
+    exists it must be empty, or an earlier output of the same command holding nothing
+    that the command did not write: its marker file says so, or, for an output without
+    one, ``recognise(folder)`` does (a Zarr store marks itself in its attributes).
+    Returns the resolved folder.
+    """
+    path = Path(path)
+    where = path.resolve()
+    for given in inputs:
+        if not isinstance(given, (str, os.PathLike)):
+            continue
+        source = Path(given).resolve()
+        if where == source:
+            also = "" if Path(given) == path else f" ({given})"
+            raise InputError(path, f"is also an input{also}; write the output to another folder (nothing was changed)")
+        if _within(where, source):
+            raise InputError(path, f"lies inside the input {given}; write the output elsewhere (nothing was changed)")
+        if _within(source, where):
+            raise InputError(path, f"contains the input {given}; write the output elsewhere (nothing was changed)")
+    if not where.exists() and not where.is_symlink():
+        return where
+    if not where.is_dir():
+        raise InputError(path, "exists and is not a folder (nothing was changed)")
+    if not any(where.iterdir()):
+        return where
+    marker = _read_marker(where)
+    keep = "; give a new or empty folder, or remove this one (nothing was changed)"
+    if marker is None:
+        if recognise is not None and recognise(where):
+            return where
+        raise InputError(path, f"is not empty and is not an earlier output of `unscatter {command}`{keep}")
+    if marker["command"] != command:
+        raise InputError(path, f"holds the output of `unscatter {marker['command']}`, not of `unscatter {command}`{keep}")
+    if isinstance(marker.get("files"), list):
+        added = sorted(set(_files(where)) - set(marker["files"]))
+        if added:
+            more = f" and {len(added) - 3} more" if len(added) > 3 else ""
+            raise InputError(path, f"holds files that `unscatter {command}` did not write ({', '.join(added[:3])}{more}); "
+                                   f"they would be lost{keep}")
+    return where
+
+
+def claim_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
+    """``check_output_dir``, then create and mark the folder, for a command that writes
+    into it as it goes (training keeps its checkpoint there to resume, and replaces
+    each of its files atomically). Returns the resolved folder."""
+    final = check_output_dir(path, command=command, inputs=inputs, recognise=recognise)
+    final.mkdir(parents=True, exist_ok=True)
+    _write_marker(final, command)
+    return final
+
+
+@contextlib.contextmanager
+def output_dir(path, *, command: str, inputs=(), recognise=None, marker: bool = True):
+    """Write ``command``'s output folder safely: ``with output_dir(out, command=..., inputs=[...]) as tmp:``.
+
+    ``check_output_dir`` refuses first, so that the user's files stay as they are. The
+    body writes into a fresh hidden sibling folder ``tmp``, which replaces ``path`` only
+    when the body finishes: the old output is renamed away, the new one renamed in, the
+    old one deleted. An interrupted or failed run thus leaves the earlier output whole,
+    and a rerun leaves nothing stale from it. The marker file (``OUTPUT_MARKER``: the
+    command and the files it wrote) goes in last; ``marker=False`` leaves it out for
+    outputs that ``recognise`` knows by themselves (a Zarr store lists every file in it).
+    """
+    final = check_output_dir(path, command=command, inputs=inputs, recognise=recognise)
+    tmp = final.parent / f".{final.name}.{secrets.token_hex(4)}.partial"
+    try:
+        final.parent.mkdir(parents=True, exist_ok=True)
+        tmp.mkdir()
+    except OSError as exc:  # e.g. a read-only folder: say so before any work is done
+        raise InputError(path, f"cannot write the output here ({exc.strerror or exc})") from exc
+    try:
+        yield tmp
+        if marker:
+            _write_marker(tmp, command, _files(tmp))
+        # the folder may have changed while the command ran: check again before replacing it
+        check_output_dir(path, command=command, recognise=recognise)
+        _swap_in(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def _write_marker(folder: Path, command: str, files: list[str] | None = None) -> None:
+    from . import __version__
+
+    data = dict(command=command, unscatter_version=__version__,
+                note="written by unscatter; a rerun of this command replaces this folder")
+    if files is not None:
+        data["files"] = files
+    write_yaml(folder / OUTPUT_MARKER, data)
+
+
+def _swap_in(new: Path, final: Path) -> None:
+    """Rename ``new`` to ``final``; an existing ``final`` is renamed away first and
+    deleted after, so that one complete version is in place at every moment."""
+    old = None
+    if final.exists():
+        old = final.parent / f".{final.name}.{secrets.token_hex(4)}.old"
+        os.rename(final, old)
+    try:
+        os.rename(new, final)
+    except BaseException:
+        if old is not None:
+            os.rename(old, final)
+        raise
+    if old is not None:
+        try:
+            shutil.rmtree(old)
+        except OSError as exc:
+            log.warning("could not remove the previous output, now at %s (%s)", old, exc)

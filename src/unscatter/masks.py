@@ -90,16 +90,14 @@ def trial_masks(count: int = 32, seed: int = 0, size: int = 512, families=TRIAL_
 
 
 def write_trial_masks(out_dir, count: int = 32, seed: int = 0, size: int = 512) -> list[Path]:
-    from .io import write_png
+    """The trial masks as ``out_dir/<id>.png`` (a new folder, or an earlier one of these)."""
+    from .io import output_dir, write_png
 
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for mid, m in trial_masks(count, seed, size).items():
-        p = out_dir / f"{mid}.png"
-        write_png(p, m)
-        paths.append(p)
-    return paths
+    masks = trial_masks(count, seed, size)
+    with output_dir(out_dir, command="masks trial") as tmp:
+        for mid, m in masks.items():
+            write_png(tmp / f"{mid}.png", m)
+    return [Path(out_dir) / f"{mid}.png" for mid in masks]
 
 
 # ------------------------------------------------------------------ augmentation

@@ -1,4 +1,4 @@
-"""Print-quality metrics: one definition, used by every stage (design.md, 'Metrics').
+"""Print-quality metrics: one definition, used by every stage (docs/design.md, 'Metrics').
 
 - IoU of printed vs target.
 - pixel error = |printed XOR target| / |target|.

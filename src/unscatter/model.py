@@ -896,7 +896,7 @@ def split_model_name(name: str) -> tuple[str, list[str]]:
     """``"eq1+heavy_tail"`` -> ("eq1", ["heavy_tail"]); KeyError for unknown parts."""
     base, *effects = str(name).split("+")
     if base not in _MODELS:
-        raise KeyError(f"unknown printer model {base!r}; known: {model_names()}")
+        raise KeyError(f"unknown model {base!r}; known: {model_names()}")
     for e in effects:
         if e not in EFFECTS:
             raise KeyError(f"unknown effect {e!r} in model {name!r}; known: {effect_names()}")
@@ -1046,16 +1046,31 @@ def params_path(path) -> Path:
     raise InputError(path, f"a model folder holds {' or '.join(PARAMS_FILES)}; this one has neither")
 
 
-def load_params(path) -> Params:
+def load_params(path, check_prints: bool = True) -> Params:
     """Read a params.yaml written by ``save_params`` (checked; errors name the file).
-    ``path`` may also be a model folder (``params_path``)."""
+    ``path`` may also be a model folder (``params_path``).
+
+    Every value must lie within its bounds (a kernel far wider than any fit allows would
+    try to allocate terabytes), the effects a model.yaml lists must be the model's, and
+    with ``check_prints`` the printer must cure a fully exposed large square
+    (``check_prints_something``): a model that prints nothing would make every
+    compensation an all-white mask without a word.
+    """
     from .io import InputError, read_yaml
 
     path = params_path(path)
     d = read_yaml(path)
     name = d.get("model", "eq1")
-    if not is_model(name):
-        raise InputError(path, f"unknown model {name!r}; known: {model_names()} (with effects {effect_names()} as 'eq1+effect')")
+    try:
+        _, effects = split_model_name(name)
+    except KeyError as exc:
+        raise InputError(path, f"{exc.args[0]} (effects are added as 'eq1+effect')") from None
+    listed = d.get("effects")
+    if listed is not None:
+        if not isinstance(listed, list) or any(e not in EFFECTS for e in listed):
+            raise InputError(path, f"effects {listed!r}: each must be one of {effect_names()}")
+        if not set(listed) <= set(effects):  # a diagnosis lists the effects it added to its base model
+            raise InputError(path, f"effects {listed} are not all in the model {name!r}")
     m = get_model(name)
     ps = d.get("parameters")
     if not isinstance(ps, dict):
@@ -1077,7 +1092,13 @@ def load_params(path) -> Params:
         if not math.isfinite(v):
             raise InputError(path, f"parameter {k!r} is not finite ({v})")
         values[k] = v
-        bounds[k] = (float(e.get("lower", spec.bounds[0])), float(e.get("upper", spec.bounds[1])))
+        try:
+            bounds[k] = lo, hi = (float(e.get("lower", spec.bounds[0])), float(e.get("upper", spec.bounds[1])))
+        except (TypeError, ValueError):
+            raise InputError(path, f"parameter {k!r}: 'lower' and 'upper' must be numbers") from None
+        slack = 1e-9 * max(1.0, abs(lo), abs(hi))  # a value written on its bound reads back on it
+        if not lo - slack <= v <= hi + slack:
+            raise InputError(path, f"parameter {k!r} = {v:g} lies outside its bounds [{lo:g}, {hi:g}]")
         if e.get("fixed", False):
             fixed.append(k)
         more = {x: y for x, y in e.items() if x not in ("value", "fixed", "lower", "upper", "unit", "doc")}
@@ -1088,10 +1109,39 @@ def load_params(path) -> Params:
     if values.get("T", 1.0) <= 0:
         raise InputError(path, "the threshold T must be > 0")
     pix = d.get("pixel_size_um")
+    if pix is not None and (isinstance(pix, bool) or not isinstance(pix, (int, float)) or not pix > 0):
+        raise InputError(path, f"pixel_size_um must be a positive number, found {pix!r}")
     info = {k: v for k, v in d.items() if k not in _STRUCTURAL}
     if extras:
         info["parameter_extras"] = extras
-    return Params(name, values, bounds, tuple(fixed), float(pix) if pix else None, info)
+    params = Params(name, values, bounds, tuple(fixed), float(pix) if pix else None, info)
+    if check_prints:
+        check_prints_something(params, path)
+    return params
+
+
+# A fully exposed square of this side (the paper's design region, Guan et al. 2022) must cure.
+FULL_DOSE_SIDE = 512
+
+
+def check_prints_something(params: Params, source) -> None:
+    """InputError naming ``source`` when ``params`` cures nothing under a fully exposed
+    FULL_DOSE_SIDE square (e.g. c0 <= 0, or T above any dose the field delivers)."""
+    from .io import InputError
+
+    m = params.build()
+    reach = m.support_px(params.values)
+    if not reach <= 8 * FULL_DOSE_SIDE:  # the padding alone would take gigabytes
+        raise InputError(source, f"the scattering kernel reaches {reach:.3g} design pixels: not a printer's "
+                                 "(check the kernel's parameters and their bounds)")
+    full = np.full((FULL_DOSE_SIDE, FULL_DOSE_SIDE), 255, np.uint8)
+    with torch.no_grad():
+        dose = m.dose(masks_to_tensor(full, "cpu"), m.theta(params.values, "cpu"))[0]
+    peak = float(dose.max())
+    if not peak >= params.values["T"]:
+        raise InputError(source, f"this printer prints nothing: a fully exposed {FULL_DOSE_SIDE}x{FULL_DOSE_SIDE} square "
+                                 f"reaches a dose of {peak:.3g}, below the threshold T = {params.values['T']:.3g} "
+                                 "(check c0 and T)")
 
 
 # ------------------------------------------------------------------------- simulate

@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from . import __version__, metrics
-from .io import InputError, write_tsv
+from .io import InputError, claim_output_dir, write_tsv
 
 log = logging.getLogger(__name__)
 
@@ -376,6 +376,29 @@ def _threads(n: int | None):
         torch.set_num_threads(prev)
 
 
+# What a training folder holds (``train``): a folder with these files only and no marker
+# file is a training run from before the marker, and may be resumed or replaced.
+TRAIN_FILES = ("master.pt", "slave.pt", "checkpoint.pt", "checkpoint.pt.tmp", "master.pt.tmp", "slave.pt.tmp", "log.tsv",
+               "curves.png", "eval.tsv")
+
+
+def _training_folder(folder: Path) -> bool:
+    return all(p.name in TRAIN_FILES for p in folder.iterdir())
+
+
+def _load_checkpoint(path: Path) -> dict:
+    """checkpoint.pt, or an InputError naming it (a truncated file, or not ours)."""
+    try:
+        c = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several kinds for a damaged file
+        raise InputError(path, "cannot read the checkpoint: truncated, or not written by `unscatter train`; "
+                               "remove it, or train with --no-resume") from exc
+    keys = {"epoch", "iteration", "settings", "dataset", "master", "slave", "opt_master", "opt_slave", "log", "seconds"}
+    if not isinstance(c, dict) or not keys <= set(c):
+        raise InputError(path, "not a checkpoint of `unscatter train`; remove it, or train with --no-resume")
+    return c
+
+
 def _save_atomic(obj, path: Path) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(obj, tmp)
@@ -399,7 +422,8 @@ def train(
     (a larger ``epochs`` extends a finished run), and one from other settings or data is
     an error (it may be someone's run); ``resume="matching"`` starts over instead (the
     workflow: it reruns training exactly when the dataset or the settings changed);
-    ``resume=False`` always starts over.
+    ``resume=False`` always starts over. ``out_dir`` is a new folder or an earlier
+    training folder (never the dataset, nor another command's output).
     Returns a summary: settings, epochs run, seconds per epoch, final losses, eval rows.
     """
     from tqdm import tqdm
@@ -408,8 +432,6 @@ def train(
 
     s = settings_for(preset, **(settings or {}))
     ds = open_dataset(dataset_zarr)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     dev = _device(device)
     size = ds.size
     if size % s["scale"] or (size // s["scale"]) % 2 ** s["depth"]:
@@ -422,6 +444,7 @@ def train(
     if len(train_idx) < 2:
         raise InputError(ds.path, f"the train split has {len(train_idx)} pairs; need at least 2")
     ident = _dataset_id(ds)
+    out = claim_output_dir(out_dir, command="train", inputs=[dataset_zarr], recognise=_training_folder)
 
     with _deterministic(), _threads(threads):
         torch.manual_seed(s["seed"])
@@ -432,7 +455,7 @@ def train(
         opt_s = torch.optim.Adam(slave.parameters(), lr=s["lr"], betas=s["betas"])
         state = dict(epoch=0, iteration=0, log=[], seconds=[])
         ck = out / "checkpoint.pt"
-        c = torch.load(ck, map_location="cpu", weights_only=True) if resume and ck.is_file() else None
+        c = _load_checkpoint(ck) if resume and ck.is_file() else None
         if c is not None:
             fixed = {k: v for k, v in s.items() if k not in _RESUMABLE}
             prev = {k: v for k, v in c["settings"].items() if k not in _RESUMABLE}

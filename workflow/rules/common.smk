@@ -17,22 +17,42 @@ validate(config, schema="../schemas/config.schema.yaml")
 # Every output, log and benchmark lives under this prefix (config/ci.yaml: results/ci).
 RESULTS = config["results"].rstrip("/")
 
+# The user's data: read, never written (README.md, 'Using your own print batches').
+DATA = Path("data")
+
 # What a batch folder must hold (README.md, 'Using your own print batches').
 BATCH_CONTRACT = ("batch.yaml", "masks", "images")
 
 
+def _within(inner, outer):
+    """Whether the folder inner is outer or lies inside it (symbolic links resolved)."""
+    inner, outer = Path(inner).resolve(), Path(outer).resolve()
+    return inner == outer or outer in inner.parents
+
+
 # ------------------------------------------------------------------------- batches
 def _batch_folder(entry, what):
-    """The folder a config entry names: a folder under data/prints/, or a path."""
+    """The folder a config entry names: a folder under data/prints/, or a path; and the
+    batch's name, which names its outputs (results/prints/<name>/): the entry itself, or
+    the resolved folder's name, and in either case a plain folder name."""
     bare = entry.rstrip(os.sep)  # "session1/" names data/prints/session1 too
-    folder = Path(bare) if os.sep in bare else Path("data/prints") / bare
+    if os.sep in bare:
+        folder = Path(bare).resolve()
+        name = folder.name
+    else:
+        folder, name = DATA / "prints" / bare, bare
+    if not name or name.startswith("."):
+        raise WorkflowError(
+            f"config: {what} {entry!r}: the batch name {name!r} is not a plain folder name "
+            "(not empty, not starting with '.'); it names the batch's outputs"
+        )
     missing = [part for part in BATCH_CONTRACT if not (folder / part).exists()]
     if missing:
         raise WorkflowError(
             f"config: {what} {entry!r}: {folder} lacks {', '.join(missing)} "
             f"(a batch holds {', '.join(BATCH_CONTRACT)}; see README.md)"
         )
-    return folder
+    return name, folder
 
 
 def _batch_folders():
@@ -44,8 +64,7 @@ def _batch_folders():
         raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
     folders = {}
     for entry in config["batches"]:
-        folder = _batch_folder(entry, "batch")
-        name = folder.name
+        name, folder = _batch_folder(entry, "batches")
         if name in folders:
             raise WorkflowError(
                 f"config: batches {folders[name]} and {folder} have the same name {name!r}; "
@@ -70,17 +89,39 @@ def _benchmark_batch():
         return {LAB_BENCHMARK_BATCH: f"{RESULTS}/lab/{LAB_BENCHMARK_BATCH}"}
     if not config["benchmark"]["batch"]:
         return {}
-    folder = _batch_folder(config["benchmark"]["batch"], "benchmark.batch")
-    if folder.name in BATCHES:
+    name, folder = _batch_folder(config["benchmark"]["batch"], "benchmark.batch")
+    if name in BATCHES:
         raise WorkflowError(
-            f"config: benchmark.batch {folder} is also a calibration batch ({BATCHES[folder.name]}): "
+            f"config: benchmark.batch {folder} is also a calibration batch ({BATCHES[name]}): "
             "the benchmark's prints are scored, never calibrated on"
         )
-    return {folder.name: str(folder)}
+    return {name: str(folder)}
 
 
 BENCHMARK_BATCH = _benchmark_batch()
 ALL_BATCHES = {**BATCHES, **BENCHMARK_BATCH}
+
+
+def _check_results():
+    """results: the folder every output goes under must keep clear of what the workflow
+    reads: not the repository (or a folder holding it), not data/ or inside it, not
+    inside a batch or the designs' folder. Snakemake deletes an output before it
+    remakes it, so an output that is a user's folder would be lost."""
+    problem = None
+    if _within(RESULTS, DATA):
+        problem = "is data/ or lies in it, and the workflow only reads data/"
+    elif _within(workflow.basedir, RESULTS) or _within(DATA, RESULTS):
+        problem = "is the repository, or a folder that holds it or data/"
+    else:
+        reads = [f for f in ALL_BATCHES.values() if config["source"] == "batches"] + [config["designs"]["folder"]]
+        inside = [f for f in reads if _within(RESULTS, f)]
+        if inside:
+            problem = f"lies in {inside[0]}, which the workflow only reads"
+    if problem:
+        raise WorkflowError(f"config: results: {config['results']!r} {problem}; give a folder of its own, e.g. results")
+
+
+_check_results()
 
 
 # The calibrated base model (Eq. 1) and the diagnosis's selected model (base + the

@@ -57,12 +57,14 @@ def load_config(path=None, overrides: dict | None = None) -> dict:
 
 
 def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=None, seed=None, progress=True,
-                exposures: dict | None = None):
+                exposures: dict | None = None, inputs=()):
     """Print every mask in MASK_DIR and image it; write a batch in the data contract.
 
     ``exposures`` (mask id -> factor of the nominal exposure, default 1) prints some masks
     longer or shorter, as a print job's ``job.tsv`` asks (see ``read_job``). The truth (true transforms, noise-free prints in mask coordinates, polymer density)
-    goes to ``truth_dir`` (default: ``<out_batch>.truth``), outside the batch.
+    goes to ``truth_dir`` (default: ``<out_batch>.truth``), outside the batch. Both are
+    new folders or earlier outputs of the lab, apart from MASK_DIR, the lab config and
+    ``inputs`` (e.g. the job.tsv that ``exposures`` came from).
     """
     from .run import run_batch
 
@@ -71,7 +73,8 @@ def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=
         cfg["seed"] = int(seed)
     out_batch = Path(out_batch)
     truth_dir = Path(truth_dir) if truth_dir else out_batch.with_name(out_batch.name + ".truth")
-    return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress, exposures=exposures)
+    return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress, exposures=exposures,
+                     inputs=[*inputs, *([lab_config] if lab_config else [])], source=lab_config or "lab config")
 
 
 def read_job(job_tsv) -> dict:

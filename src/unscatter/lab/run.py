@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..io import InputError, list_pngs, read_mask, write_png, write_tiff16, write_tsv, write_yaml
+from ..io import InputError, check_batch_meta, list_pngs, output_dir, read_mask, write_png, write_tiff16, write_tsv, write_yaml
 from .microscope import image_print
 from .printer import Printer
 
@@ -30,8 +30,25 @@ def _exposed(printer_cfg: dict, factor: float) -> dict:
     return dict(printer_cfg, cure=cure)
 
 
+def batch_yaml(cfg: dict, exposures: dict, source) -> dict:
+    """The batch.yaml the lab writes, checked as registration will check it (``source``,
+    the lab config, is named when a value there is wrong)."""
+    meta, mic = cfg["batch"], cfg["microscope"]
+    out = dict(meta)
+    if mic.get("declare_offset", True):
+        out["camera_offset_adu"] = mic["offset_adu"] / (256 if mic.get("format") == "png8" else 1)
+    out["notes"] = f"virtual lab, seed {cfg['seed']}"
+    if any(v != 1.0 for v in exposures.values()):
+        out["notes"] += "; some masks printed at other exposures: see job.tsv"
+    check_batch_meta(out, source)
+    return out
+
+
 def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progress=True,
-              exposures: dict | None = None) -> list[dict]:
+              exposures: dict | None = None, inputs=(), source="lab config") -> list[dict]:
+    """Print and image every mask of ``mask_dir`` into the batch ``out_batch`` and its
+    truth ``truth_dir`` (each a new folder, or an earlier output of the lab).
+    ``inputs``: other files the run reads (a job file, the lab config), never written over."""
     masks = list_pngs(mask_dir)
     if not masks:
         raise InputError(mask_dir, "no .png masks to print")
@@ -42,9 +59,9 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
     bad = [k for k, v in exposures.items() if not 0.2 <= v <= 5.0]
     if bad:
         raise InputError(mask_dir, f"exposure factors outside 0.2..5 for {', '.join(bad[:5])}")
+    meta = batch_yaml(cfg, exposures, source)
     first = read_mask(next(iter(masks.values())))
     size = first.shape[0]
-    meta = cfg["batch"]
     printers: dict = {}
 
     def printer_for(mid: str) -> Printer:
@@ -57,42 +74,34 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
     mic = cfg["microscope"]
     level = float(mic["level"])
 
-    for d in (out_batch, truth_dir):
-        if d.exists():
-            shutil.rmtree(d)
-    (out_batch / "masks").mkdir(parents=True)
-    (out_batch / "images").mkdir()
-    (truth_dir / "prints").mkdir(parents=True)
-    (truth_dir / "density").mkdir()
-
-    rows = []
-    for mid, path in tqdm(masks.items(), desc="virtual lab: printing", disable=not progress, unit="print"):
-        mask = read_mask(path)
-        if mask.shape != (size, size):
-            raise InputError(path, f"mask is {mask.shape}, the batch's masks are {size}x{size}")
-        rng = mask_rng(cfg["seed"], mid)
-        printer = printer_for(mid)
-        rho = printer.density(mask, rng)
-        truth = printer.crop(rho) >= level
-        img, pose, M = image_print(rho, printer.pad, size, mic, rng)
-        shutil.copyfile(path, out_batch / "masks" / f"{mid}.png")
-        if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
-            write_png(out_batch / "images" / f"{mid}.png", (img >> 8).astype(np.uint8))
-        else:
-            write_tiff16(out_batch / "images" / f"{mid}.tif", img)
-        write_png(truth_dir / "prints" / f"{mid}.png", truth)
-        np.save(truth_dir / "density" / f"{mid}.npy", printer.crop(rho).astype(np.float32))
-        rows.append(dict(id=mid, exposure=exposures.get(mid, 1.0), **pose, m00=M[0, 0], m01=M[0, 1], m02=M[0, 2], m10=M[1, 0], m11=M[1, 1], m12=M[1, 2],
-                         solid_fraction=float(truth.mean())))
-    batch_yaml = dict(meta)
-    if mic.get("declare_offset", True):
-        batch_yaml["camera_offset_adu"] = mic["offset_adu"] / (256 if mic.get("format") == "png8" else 1)
-    batch_yaml["notes"] = f"virtual lab, seed {cfg['seed']}"
-    if any(v != 1.0 for v in exposures.values()):
-        batch_yaml["notes"] += "; some masks printed at other exposures: see job.tsv"
-        write_tsv(out_batch / "job.tsv", [dict(id=k, exposure=exposures.get(k, 1.0),
+    reads = [mask_dir, *inputs]
+    with (output_dir(out_batch, command="lab print", inputs=reads + [truth_dir]) as batch,
+          output_dir(truth_dir, command="lab print", inputs=reads + [out_batch]) as truth_out):
+        for sub in (batch / "masks", batch / "images", truth_out / "prints", truth_out / "density"):
+            sub.mkdir()
+        rows = []
+        for mid, path in tqdm(masks.items(), desc="virtual lab: printing", disable=not progress, unit="print"):
+            mask = read_mask(path)
+            if mask.shape != (size, size):
+                raise InputError(path, f"mask is {mask.shape}, the batch's masks are {size}x{size}")
+            rng = mask_rng(cfg["seed"], mid)
+            printer = printer_for(mid)
+            rho = printer.density(mask, rng)
+            truth = printer.crop(rho) >= level
+            img, pose, M = image_print(rho, printer.pad, size, mic, rng)
+            shutil.copyfile(path, batch / "masks" / f"{mid}.png")
+            if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
+                write_png(batch / "images" / f"{mid}.png", (img >> 8).astype(np.uint8))
+            else:
+                write_tiff16(batch / "images" / f"{mid}.tif", img)
+            write_png(truth_out / "prints" / f"{mid}.png", truth)
+            np.save(truth_out / "density" / f"{mid}.npy", printer.crop(rho).astype(np.float32))
+            rows.append(dict(id=mid, exposure=exposures.get(mid, 1.0), **pose, m00=M[0, 0], m01=M[0, 1], m02=M[0, 2], m10=M[1, 0], m11=M[1, 1], m12=M[1, 2],
+                             solid_fraction=float(truth.mean())))
+        if any(v != 1.0 for v in exposures.values()):
+            write_tsv(batch / "job.tsv", [dict(id=k, exposure=exposures.get(k, 1.0),
                                                exposure_s=float(meta["exposure_s"]) * exposures.get(k, 1.0)) for k in masks])
-    write_yaml(out_batch / "batch.yaml", batch_yaml)
-    write_tsv(truth_dir / "transforms.tsv", rows)
-    write_yaml(truth_dir / "lab_config.yaml", cfg)
+        write_yaml(batch / "batch.yaml", meta)
+        write_tsv(truth_out / "transforms.tsv", rows)
+        write_yaml(truth_out / "lab_config.yaml", cfg)
     return rows
