@@ -213,7 +213,6 @@ def test_benchmark_outputs(tiny, user, command):
 
 # registration writes through unscatter.imaging.register_batch, which calls io.output_dir
 # with command="register" and inputs=[batch_dir]; until then these fail as marked.
-REGISTER = pytest.mark.xfail(strict=False, reason="register_batch not yet wired")
 
 
 @pytest.fixture
@@ -223,7 +222,6 @@ def batch(tiny, tmp_path):
     return b
 
 
-@REGISTER
 @pytest.mark.parametrize("where", ["masks", "batch", "user"])
 def test_register_never_writes_into_its_batch_or_a_users_folder(batch, user, where):
     out = {"masks": batch / "masks", "batch": batch, "user": user}[where]
@@ -232,7 +230,6 @@ def test_register_never_writes_into_its_batch_or_a_users_folder(batch, user, whe
     assert sums(batch, user) == before
 
 
-@REGISTER
 def test_register_rerun_leaves_no_stale_prints(batch, tmp_path):
     out = tmp_path / "prints"
     assert run("register", batch, out, "--skip-failed").exit_code == 0

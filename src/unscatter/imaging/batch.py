@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from ..io import InputError, open_batch, read_mask, read_yaml, write_png, write_rgb, write_tsv, write_yaml
+from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, pose_distance, pose_of, project_similarity, refine,
@@ -47,6 +47,8 @@ class Settings:
     distinct_px: float = 1.5  # poses further apart than this (RMS, design px) are distinct
     mismatch_factor: float = 3.0  # a print whose misfit is this many times the batch median ...
     mismatch_sigmas: float = 4.0  # ... and this many robust sigmas above it does not match its mask
+    mismatch_factor_max: float = 10.0  # (the limit is at most this many times the median)
+    implausible_factor: float = 5.0  # noise or background this far from the batch's: not a print image
     min_misfit_px: float = 3.0  # ... and at least this (px per edge px): a mean edge error no print of its mask has
     max_misfit_px: float = 8.0  # misfit (px per edge px) that fails without a batch to compare with
     max_pose_sd: float = 0.5  # design px: a pose known worse than this (1 sd, RMS over the field) fails
@@ -139,6 +141,30 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
 
 
+def implausible(corr: dict, s: Settings) -> dict:
+    """Images that cannot be fluorescence images of prints of this batch, with the reason.
+
+    A print image is mostly background, flat after the flat field, with the noise of the
+    batch's other images. Full-range noise, a different kind of image or a different
+    camera setting shows as a noise level or background far from the batch's: more than
+    ``implausible_factor`` times the batch median either way (with at least three images
+    to compare).
+    """
+    if len(corr) < 3:
+        return {}
+    noise = {k: c.noise for k, c in corr.items()}
+    bg = {k: c.background for k, c in corr.items()}
+    mn, mb = float(np.median(list(noise.values()))), float(np.median(list(bg.values())))
+    f = s.implausible_factor
+    out = {}
+    for k in corr:
+        if not 1 / f <= noise[k] / max(mn, 1e-12) <= f:
+            out[k] = f"its noise is {noise[k] / max(mn, 1e-12):.1f} times the batch's (background-relative)"
+        elif mb > 0 and not 1 / f <= bg[k] / mb <= f:
+            out[k] = f"its background is {bg[k] / mb:.2f} times the batch's"
+    return out
+
+
 def misfit_px(printed: np.ndarray, predicted: np.ndarray) -> float:
     """How far a print is from its predicted print: the area where they differ per edge
     pixel of the two (a mean edge displacement, in design px)."""
@@ -152,14 +178,19 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
     """Prints that disagree with their mask's predicted print far more than the batch's
     other prints do (a swapped or mislabelled image): misfit above ``mismatch_factor``
     times the batch median, ``mismatch_sigmas`` robust sigmas (1.4826 MAD, on the log
-    misfit) above it, and ``min_misfit_px`` at least. With fewer than five prints to compare, ``max_misfit_px`` alone."""
-    vals = {r["id"]: r["misfit"] for r in rows if r["status"] == "ok" and np.isfinite(r.get("misfit", np.nan))}
-    if len(vals) < 5:
+    misfit) above it but at most ``mismatch_factor_max`` times it, and ``min_misfit_px`` at
+    least. With fewer than five prints to compare, ``max_misfit_px`` alone."""
+    vals = {r["id"]: r["misfit"] for r in rows if isinstance(r.get("misfit"), float) and np.isfinite(r["misfit"])}
+    ref = [r["misfit"] for r in rows if r["status"] == "ok" and r["id"] in vals]
+    if len(ref) < 5:
         return {k: f"misfit {v:.1f} px per edge px above {s.max_misfit_px}" for k, v in vals.items() if v > s.max_misfit_px}
-    lv = np.log(np.maximum(np.array(list(vals.values())), 1e-3))
+    lv = np.log(np.maximum(np.array(ref), 1e-3))
     med = float(np.median(lv))
     mad = 1.4826 * float(np.median(np.abs(lv - med)))
-    lim = max(med + max(np.log(s.mismatch_factor), s.mismatch_sigmas * mad), np.log(s.min_misfit_px))
+    # prints of different patterns misfit differently (a fine grating more than a block), so
+    # the spread only widens the limit up to ``mismatch_factor_max`` times the median
+    spread = min(max(np.log(s.mismatch_factor), s.mismatch_sigmas * mad), np.log(s.mismatch_factor_max))
+    lim = max(med + spread, np.log(s.min_misfit_px))
     return {k: f"misfit {v:.1f} px per edge px, the batch's median {np.exp(med):.2f}" for k, v in vals.items()
             if np.log(max(v, 1e-3)) > lim}
 
@@ -211,29 +242,57 @@ def _overlay(reg: np.ndarray, mask: np.ndarray, printed: np.ndarray, dense: floa
 
 
 def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0.6, skip_failed=False, progress=True, **kw) -> list[dict]:
-    """Register and threshold every image of a batch; write prints, qc.tsv, overlays."""
-    from tqdm import tqdm
+    """Register and threshold every image of a batch; write prints, qc.tsv, overlays.
 
+    The output folder is written beside and swapped in whole (``io.output_dir``): it
+    never replaces a folder that is not an earlier registration, never lies in the
+    batch, and a rerun leaves nothing stale. QC failures raise after the output is
+    written, so qc.tsv and the overlays show why.
+    """
+    from ..limits import REGISTRATION
+
+    for name, value in (("level", level), ("min_score", min_score)):
+        r = REGISTRATION[name]
+        if not ((r.lo < value if r.lo_open else r.lo <= value) and (value < r.hi if r.hi_open else value <= r.hi)):
+            raise ValueError(f"registration {name} must lie in {'(' if r.lo_open else '['}{r.lo}, {r.hi}"
+                             f"{')' if r.hi_open else ']'}, not {value}")
     s = Settings(mode=mode, level=level, min_score=min_score, skip_failed=skip_failed, **kw)
     if mode not in ("similarity", "affine"):
         raise ValueError(f"mode must be 'similarity' or 'affine', not {mode!r}")
     batch = open_batch(batch_dir)
-    meta_raw = read_yaml(Path(batch_dir) / "batch.yaml")
-    offset = float(meta_raw.get("camera_offset_adu", 0) or 0)
-    out_dir = Path(out_dir)
+    with output_dir(out_dir, command="register", inputs=[batch_dir]) as tmp:
+        rows = _register(batch, Path(batch_dir), tmp, Path(out_dir), s, progress)
+    failed = [r for r in rows if r["status"] == "failed"]
+    for r in failed:
+        log.warning("%s: registration failed: %s", r["id"], r["reason"])
+    if failed and not s.skip_failed:
+        raise RegistrationError(
+            f"{len(failed)} of {len(rows)} prints in {batch_dir} failed registration QC "
+            f"({'; '.join(r['id'] + ': ' + r['reason'] for r in failed)}). See {Path(out_dir) / 'qc.tsv'} and the overlays; "
+            "re-image them, remove them from the batch, or set registration.skip_failed to go on without them."
+        )
+    return rows
+
+
+def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Settings, progress: bool) -> list[dict]:
+    """The steps of ``register_batch``, writing into ``out_dir`` (``final_dir`` once swapped in)."""
+    from tqdm import tqdm
+
+    meta = batch.meta.as_dict()
+    offset = float(batch.meta.camera_offset_adu)
     (out_dir / "overlays").mkdir(parents=True, exist_ok=True)
     ids = batch.ids
     masks = {mid: read_mask(batch.masks[mid]) for mid in ids}
     shapes = {m.shape for m in masks.values()}
     sh = next(iter(shapes))
     if len(shapes) != 1 or sh[0] != sh[1]:
-        raise InputError(Path(batch_dir) / "masks", f"masks must all be square and of one size, found {sorted(shapes)}")
+        raise InputError(batch_dir / "masks", f"masks must all be square and of one size, found {sorted(shapes)}")
     design_px = sh[0]
-    s.rotation_deg = rotation_range(meta_raw, s.rotation_deg, Path(batch_dir) / "batch.yaml")
-    scales = {mid: scale_range(meta_raw, batch.images[mid], s.scale_range, s.scale_tolerance, Path(batch_dir) / "batch.yaml")
+    s.rotation_deg = rotation_range(meta, s.rotation_deg, batch_dir / "batch.yaml")
+    scales = {mid: scale_range(meta, batch.images[mid], s.scale_range, s.scale_tolerance, batch_dir / "batch.yaml")
               for mid in ids}
     pool = ThreadPoolExecutor(s.threads)
-    bar = tqdm(total=5 * len(ids), desc=f"registering {Path(batch_dir).name}", unit="step", disable=not progress)
+    bar = tqdm(total=5 * len(ids), desc=f"registering {batch_dir.name}", unit="step", disable=not progress)
 
     def pmap(fn, items):
         out = []
@@ -249,16 +308,20 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
         corr = list(pool.map(lambda mid: correct_image(mid, batch.images[mid], offset, s, "subtract"), ids))
     corr = {k.id: k for k in corr}
 
-    # 2. one threshold for the batch; empty prints are recognised before registration
-    dense, thr = dense_level(list(corr.values()), s)
+    # 2. one threshold for the batch, from the images that can be prints; empty prints are
+    # recognised before registration
+    odd = implausible(corr, s)
+    dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
     empty = set()
     for mid, k in corr.items():
+        if mid in odd:
+            continue
         n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * k.noise))) if np.isfinite(thr) else 0
         if n_above < s.min_print_px:
             empty.add(mid)
-    todo = [mid for mid in ids if mid not in empty and masks[mid].max() > 0]
+    todo = [mid for mid in ids if mid not in empty and mid not in odd and masks[mid].max() > 0]
     bar.total = 2 * len(ids) + 2 * len(todo)
     bar.refresh()
 
@@ -289,7 +352,10 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
         k, mask = corr[mid], masks[mid]
         row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
                    evidence="", pose_sd="", misfit="", dose="", blur="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
-                   mask=os.path.relpath(batch.masks[mid].resolve(), out_dir.resolve()), image=str(batch.images[mid]))
+                   mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
+        if mid in odd:
+            row.update(status="failed", reason=f"not a print image: {odd[mid]}")
+            return row, None
         if mid in empty:
             printed = np.zeros((design_px, design_px), bool)
             row.update(status="empty", reason="no polymer above the batch threshold", solid_fraction=0.0)
@@ -341,8 +407,9 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
     rows = [r for r, _ in done]
     bad = mismatched(rows, s)
     for r in rows:
-        if r["id"] in bad:
-            r.update(status="failed", reason=f"does not match its mask: {bad[r['id']]}")
+        if r["id"] in bad:  # the likeliest cause first: a pose is hard to find for the wrong mask
+            why = f"does not match its mask: {bad[r['id']]}"
+            r.update(status="failed", reason=why + (f"; {r['reason']}" if r["reason"] else ""))
     for r, printed in done:
         if isinstance(r["misfit"], float):
             r["misfit"] = round(r["misfit"], 3)
@@ -353,19 +420,10 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
     cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "misfit", "dose", "blur", "coverage",
             "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
     write_tsv(out_dir / "qc.tsv", rows, cols)
-    write_yaml(out_dir / "batch.yaml", dict(meta_raw, source_batch=str(Path(batch_dir))))
+    write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
-    failed = [r for r in rows if r["status"] == "failed"]
-    for r in failed:
-        log.warning("%s: registration failed: %s", r["id"], r["reason"])
-    if failed and not s.skip_failed:
-        raise RegistrationError(
-            f"{len(failed)} of {len(rows)} prints in {batch_dir} failed registration QC "
-            f"({'; '.join(r['id'] + ': ' + r['reason'] for r in failed)}). See {out_dir / 'qc.tsv'} and the overlays; "
-            "re-image them, remove them from the batch, or set registration.skip_failed to go on without them."
-        )
     return rows
 
 

@@ -175,7 +175,7 @@ class Fit:
     converged: bool
     iterations: int
 
-    def __getattr__(self, name):  # dose, blur, grad_x, grad_y, gel, edge
+    def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
         names = [n for n, _, _ in NUISANCE]
         if name in names:
             return float(self.q[names.index(name)])
@@ -196,30 +196,26 @@ def _warp(img: np.ndarray, Ms: np.ndarray, shape) -> np.ndarray:
 # that name), prior standard deviation. The priors keep the fit well posed where a print
 # cannot tell them apart (dose against gel, edge offset against scale for one feature);
 # the pose's spread then shows what the print leaves open.
-NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15),
-            ("gel", None, 0.1), ("edge", 0.0, 1.5))
-_BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "gel": (0.0, 2.0),
-           "edge": (-6.0, 6.0)}
+# (The gel dose is the batch's: with the dose free it only trades against it.)
+NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 1.5))
+_BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "edge": (-6.0, 6.0)}
 
 
 def _prior(x) -> tuple[np.ndarray, np.ndarray]:
-    batch = {"blur": max(float(x[10]), 0.3), "gel": float(x[1])}
+    batch = {"blur": max(float(x[10]), 0.3)}
     mean = np.array([batch[n] if m is None else m for n, m, _ in NUISANCE])
     return mean, np.array([sd for _, _, sd in NUISANCE])
 
 
 def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
     """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives."""
-    dose, blur, gx, gy, gel, edge = (float(v) for v in q)
+    dose, blur, gx, gy, edge = (float(v) for v in q)
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
-    xg = np.array(x, float)
-    xg[1] = gel
-    T, (dT, dTx, dTy, dTg) = tmpl.cure_jacobian(B, xg, dose * field, (field, dose * tmpl.X, dose * tmpl.Y,
-                                                                     -1.0 / np.maximum(B, 1e-6)), blur)
+    T, (dT, dTx, dTy) = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur)
     hb = 0.1 * blur
-    dTb = (tmpl.cure(B, xg, dose * field, blur=blur + hb) - T) / hb
+    dTb = (tmpl.cure(B, x, dose * field, blur=blur + hb) - T) / hb
     T, dTe = edge_shifted(T, edge, tmpl.f)
-    return T, [dT, dTb, dTx, dTy, dTg, dTe]
+    return T, [dT, dTb, dTx, dTy, dTe]
 
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
@@ -434,7 +430,10 @@ def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 16, clip: float =
     Pb, fb = predicted_image(b[0], b[1], img.shape, factor)
     # only where the two predictions differ: elsewhere both fit the same pixels alike and
     # would add their noise to the denominator alone
-    differ = np.abs(Pa - Pb) > 0.1 * max(abs(a[0].gain), abs(b[0].gain), 1e-6) * max(float(a[1].max()), float(b[1].max()))
+    # the print's amplitude from the weaker of the two fits, so that a collapsed rival (its
+    # template nearly flat) does not raise the bar above every pixel
+    amp = min(abs(a[0].gain) * float(np.percentile(a[1], 99)), abs(b[0].gain) * float(np.percentile(b[1], 99)))
+    differ = np.abs(Pa - Pb) > 0.1 * max(amp, 1e-9)
     region = (fa | fb) & np.isfinite(img) & differ
     s2 = (clip * max(a[0].sigma, b[0].sigma)) ** 2
     ra = np.minimum((img - Pa) ** 2, s2)
