@@ -94,7 +94,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     n = full.shape[0]
 
     def coarse(M):  # half resolution: every start and every move
-        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02)
+        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False)
         return f, predicted_print(half, B_half, x, f)
 
     def fine(f):  # full resolution: the poses still in the running
@@ -133,6 +133,8 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     best = fine(best)
     z_min, rival = float("inf"), None
     for f in (fine(f) for f in close):
+        if pose_distance(f[0].M, best[0].M, n, MARGIN) <= s.distinct_px:
+            continue  # it came back to the same pose at full resolution
         z = evidence(img, best, f)
         if z < 0:
             best, f, z = f, best, -z
@@ -165,13 +167,18 @@ def implausible(corr: dict, s: Settings) -> dict:
     return out
 
 
-def misfit_px(printed: np.ndarray, predicted: np.ndarray) -> float:
-    """How far a print is from its predicted print: the area where they differ per edge
-    pixel of the two (a mean edge displacement, in design px)."""
+def misfit_px(printed: np.ndarray, predicted: np.ndarray, thr: float) -> float:
+    """How far a print is from its predicted print (the predicted image, thresholded at
+    ``thr``): the area where they differ per edge pixel (a mean edge displacement, in
+    design px), counted only where the prediction is clearly solid or clearly void, so
+    that a near-threshold print, whose cure boundary no template places exactly, is not
+    taken for a wrong one."""
     from ..metrics import edge_length_px
 
-    edge = edge_length_px(printed) + edge_length_px(predicted)
-    return float(np.count_nonzero(printed ^ predicted) / max(edge / 2, 1.0))
+    solid = predicted >= thr
+    sure = (predicted > 1.5 * thr) | (predicted < 0.5 * thr)
+    edge = edge_length_px(printed) + edge_length_px(solid)
+    return float(np.count_nonzero((printed ^ solid) & sure) / max(edge / 2, 1.0))
 
 
 def mismatched(rows: list[dict], s: Settings) -> dict:
@@ -397,7 +404,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         row["solid_fraction"] = round(float(printed.mean()), 5)
-        row["misfit"] = misfit_px(printed, ch.fit.gain * tpl + ch.fit.offset >= thr)
+        row["misfit"] = misfit_px(printed, ch.fit.gain * tpl + ch.fit.offset, thr)
         write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
         if reasons:
             row.update(status="failed", reason="; ".join(reasons))

@@ -124,7 +124,6 @@ def coarse_candidates(tpl: np.ndarray, img: np.ndarray, rotation: tuple, scale: 
             scales = np.exp(np.arange(np.log(lo), np.log(hi) + 1e-9, dls)) if hi > lo * np.exp(dls / 2) else np.array([np.sqrt(lo * hi)])
             found = _grid_search(t_small, Fi, N, thetas, scales)
             cands = _distinct(found, count, 6.0, 0.1, 3.0)
-            f_prev = f
         else:
             fine = []
             for _, th0, sc0, pos0 in cands:
@@ -197,8 +196,10 @@ def _warp(img: np.ndarray, Ms: np.ndarray, shape) -> np.ndarray:
 # cannot tell them apart (dose against gel, edge offset against scale for one feature);
 # the pose's spread then shows what the print leaves open.
 # (The gel dose is the batch's: with the dose free it only trades against it.)
-NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 1.5))
-_BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "edge": (-6.0, 6.0)}
+NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 1.5),
+            ("edge_c2", 0.0, 1.0), ("edge_s2", 0.0, 1.0))
+_BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "edge": (-6.0, 6.0),
+           "edge_c2": (-4.0, 4.0), "edge_s2": (-4.0, 4.0)}
 
 
 def _prior(x) -> tuple[np.ndarray, np.ndarray]:
@@ -209,17 +210,17 @@ def _prior(x) -> tuple[np.ndarray, np.ndarray]:
 
 def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
     """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives."""
-    dose, blur, gx, gy, edge = (float(v) for v in q)
+    dose, blur, gx, gy, *edge = (float(v) for v in q)
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
     T, (dT, dTx, dTy) = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur)
     hb = 0.1 * blur
     dTb = (tmpl.cure(B, x, dose * field, blur=blur + hb) - T) / hb
     T, dTe = edge_shifted(T, edge, tmpl.f)
-    return T, [dT, dTb, dTx, dTy, dTe]
+    return T, [dT, dTb, dTx, dTy, *dTe]
 
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
-           tol: float = 0.01) -> Fit:
+           tol: float = 0.01, spread: bool = True) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors).
 
@@ -229,7 +230,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     the priors' penalties, with Huber weights w; the pose's Jacobian comes from
     gain * grad T, which is noise-free and equals the aligned image's gradient at the
     solution (image noise in the gradient would inflate the normal matrix and shorten
-    every step).
+    every step). ``spread=False`` skips the pose's standard deviation (``pose_sd`` nan).
     """
     q0, qs = _prior(x)
     if isinstance(fit_or_M, Fit):
@@ -249,7 +250,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     g = np.arange(n, dtype=np.float32) - np.float32(c)
     Xg, Yg = np.meshgrid(g, g)
     corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
-    sigma, it, move, H, norm, r, w, npose = float("nan"), 0, float("inf"), None, None, None, None, 0
+    sigma, it, move, H_data, norm, r, w, npose = float("nan"), 0, float("inf"), None, None, None, None, 0
     for it in range(1, iters + 1):
         Iw = _warp(src, Ms[:2], shape)
         valid = np.isfinite(Iw)
@@ -272,7 +273,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         norm = np.sqrt((J * J).sum(0)) + 1e-9
         J /= norm
         Jw = J * w.ravel()[:, None]
-        H = (Jw.T @ J).astype(np.float64) / sigma**2
+        H_data = (Jw.T @ J).astype(np.float64) / sigma**2
+        H = H_data.copy()
         rhs = -(Jw.T @ r.ravel()).astype(np.float64) / sigma**2
         kq = slice(npose + 2, None)
         H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
@@ -296,25 +298,35 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if move < tol:
             break
     converged = move < max(10 * tol, 0.1)  # still moving by a tenth of a pixel: not settled
-    sd = _pose_sd(H, norm, npose, r * np.sqrt(w), sigma, mode, corners) * f
+    sd = _pose_sd(H_data, norm, npose, r * np.sqrt(w), sigma, mode, corners) * f if spread else float("nan")
     M_full = (Ms @ np.linalg.inv(S))[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
 
 
-def edge_shifted(T: np.ndarray, edge: float, factor: int = 1):
-    """The template with every edge moved outward by ``edge`` design px (to first order,
-    T + e |grad T|), and its derivative in e. A print that is uniformly larger or
-    smaller than predicted (erosion or swelling after the wash, a cure boundary the
-    template misplaces) is otherwise matched by a wrong scale."""
+def edge_shifted(T: np.ndarray, edge, factor: int = 1):
+    """The template with its edges moved outward, to first order, and the derivatives.
+
+    ``edge`` = (e0, c2, s2), design px: an edge whose normal points at angle t moves by
+    e0 + c2 cos 2t + s2 sin 2t, i.e. T + |grad T| e0 + (gx^2 - gy^2) / |grad T| c2 +
+    2 gx gy / |grad T| s2. A print that is uniformly larger or smaller than predicted
+    (erosion or swelling after the wash, a cure boundary the template misplaces), or
+    more so across one direction than the other (anisotropic scattering), is otherwise
+    matched by a wrong scale.
+    """
     gy, gx = np.gradient(T)
-    g = np.sqrt(gx * gx + gy * gy) / factor
-    return T + edge * g, g
+    g = np.sqrt(gx * gx + gy * gy)
+    inv = 1.0 / np.maximum(g, 1e-12 + 1e-6 * float(g.max()))
+    basis = [g / factor, (gx * gx - gy * gy) * inv / factor, 2 * gx * gy * inv / factor]
+    e0, c2, s2 = (float(v) for v in edge)
+    return T + e0 * basis[0] + c2 * basis[1] + s2 * basis[2], basis
 
 
 def _pose_sd(H, norm, npose, rw, sigma, mode, corners, max_lag: int = 12) -> float:
-    """Standard deviation of the pose (grid px, RMS over the field): the pose block of
-    the inverse of the (data / sigma^2 + priors) normal matrix, so the nuisance numbers
-    are marginalised.
+    """Standard deviation of the pose (grid px, RMS over the field) that the print's data
+    alone allow: the pose block of the pseudo-inverse of the data's normal matrix (the
+    priors left out, so a pose that only a prior holds in place, such as the scale of a
+    single block whose edge offset is free, shows as undetermined), the nuisance numbers
+    marginalised.
 
     Residuals of a print are not independent: template misfit runs along edges. The
     variance is inflated by the residual's integrated auto-correlation (the number of
@@ -322,15 +334,12 @@ def _pose_sd(H, norm, npose, rw, sigma, mode, corners, max_lag: int = 12) -> flo
     """
     if H is None:
         return float("inf")
-    try:
-        C = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        return float("inf")
-    C = C / np.outer(norm, norm)
-    n = rw.shape[0]
-    F = np.fft.rfft2(rw - rw.mean(), s=(2 * n, 2 * n))
-    ac = np.fft.irfft2(F * np.conj(F), s=(2 * n, 2 * n))
-    ac = np.fft.fftshift(ac)[n - max_lag : n + max_lag + 1, n - max_lag : n + max_lag + 1]
+    C = np.linalg.pinv(H, rcond=1e-10, hermitian=True) / np.outer(norm, norm)
+    N = cv2.getOptimalDFTSize(rw.shape[0] + 2 * max_lag)  # padding enough for lags up to max_lag
+    F = np.fft.rfft2(rw - rw.mean(), s=(N, N))
+    ac = np.fft.fftshift(np.fft.irfft2(F * np.conj(F), s=(N, N)))
+    o = N // 2
+    ac = ac[o - max_lag : o + max_lag + 1, o - max_lag : o + max_lag + 1]
     kappa = float(np.clip(ac.sum() / max(ac[max_lag, max_lag], 1e-30), 1.0, (2 * max_lag + 1) ** 2))
     Cp = C[:npose, :npose] * kappa
     # displacement of field points: d(x) = G(x) p; RMS over a grid of points of the field
@@ -353,14 +362,18 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
                        count: int = 4) -> list[np.ndarray]:
     """Moves S (3x3, grid -> grid) under which the predicted print T nearly maps onto itself.
 
-    Shifts: local maxima of T's normalised auto-correlation within ``max_shift`` px.
+    Shifts: local maxima of the normalised auto-correlation of T, high-passed (periods up
+    to about 30 px), within ``max_shift`` px.
     Rotations: for each angle, the peak of the cross-correlation of T with T rotated
     about the grid centre (the shift at the peak turns it into a rotation about the
     print's own centre of symmetry, a star's hub). Only moves whose correlation is at
     least ``min_corr`` are kept, the strongest ``count`` of each kind.
     """
     n = T.shape[0]
-    z = _zn(T.astype(np.float64))
+    # high-passed: a weak periodic ripple on a large block is a local maximum of the
+    # ripple's auto-correlation, not of the block's (which falls off smoothly)
+    Tf = T.astype(np.float32)
+    z = _zn((Tf - cv2.GaussianBlur(Tf, (0, 0), 12.0)).astype(np.float64))
     N = cv2.getOptimalDFTSize(n + max_shift)
     F = np.fft.rfft2(z, s=(N, N))
     moves = []
@@ -418,7 +431,7 @@ def predicted_image(fit: Fit, T: np.ndarray, image_shape, factor: int = 1) -> tu
     return fit.gain * P + fit.offset, foot
 
 
-def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 16, clip: float = 4.0, factor: int = 1) -> float:
+def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 8, clip: float = 4.0, factor: int = 1) -> float:
     """How strongly the image prefers fit ``a`` over fit ``b`` (z >> 0: a; z << 0: b).
 
     ``a`` and ``b`` are (Fit, full-resolution template of that fit). Both are compared

@@ -9,7 +9,7 @@ the field in our measurements). The print template predicts which parts of a mas
     exposure   E = m (1 + fx X + fy Y + fxx X^2 + fxy X Y + fyy Y^2)
     scattered  B = (1 - tail) G_sigma * E + tail G_tail_sigma * E
     cured      R = 1 - exp(-max(dose B - gel, 0) / k)
-    imaged     T = G_blur * R
+    imaged     T = (1 - haze) G_blur * R + haze G_haze_sigma * R
 
 The batch shares the printer's numbers (``NAMES``), fitted once over its prints, so
 that they cannot trade off against any one print's pose; each print has its own
@@ -27,10 +27,10 @@ import numpy as np
 class PrintTemplate:
     """The print template on the padded design grid, optionally subsampled by ``factor``."""
 
-    NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur")
-    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0)
+    NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur", "haze", "haze_sigma")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0)
     # Powell works on these scales (a unit step is a sensible first move for each)
-    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5)
+    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5, 0.03, 10.0)
 
     def __init__(self, design_px: int, margin: int, factor: int = 1):
         self.margin, self.f, self.design_px = margin, factor, design_px
@@ -48,7 +48,7 @@ class PrintTemplate:
 
     def exposure(self, m: np.ndarray, x) -> np.ndarray:
         """The scattered dose B (before the cure), for a padded mask ``m``."""
-        sigma, _, _, fx, fy, fxx, fxy, fyy, tail, tail_sigma, _ = (float(v) for v in x)
+        sigma, _, _, fx, fy, fxx, fxy, fyy, tail, tail_sigma = (float(v) for v in x[:10])
         X, Y, f = self.X, self.Y, self.f
         e = m * (1 + fx * X + fy * Y + fxx * X * X + fxy * X * Y + fyy * Y * Y)
         b = cv2.GaussianBlur(e, (0, 0), max(sigma, 0.3) / f)
@@ -62,25 +62,33 @@ class PrintTemplate:
 
         ``blur`` (design px) overrides the batch's microscope blur: focus varies by image."""
         gel, k = float(x[1]), max(float(x[2]), 1e-3)
-        blur = max(float(x[10]) if blur is None else blur, 0.3) / self.f
+        blur = max(float(x[10]) if blur is None else blur, 0.3)
         u = np.maximum(dose * B - gel, 0.0)
         e = np.exp(-u / k)
-        T = cv2.GaussianBlur((1.0 - e).astype(np.float32), (0, 0), blur)
+        T = self.image(1.0 - e, x, blur)
         if not with_gradient:
             return T
-        dT = cv2.GaussianBlur((np.where(u > 0, e * B / k, 0.0)).astype(np.float32), (0, 0), blur)
-        return T, dT
+        return T, self.image(np.where(u > 0, e * B / k, 0.0), x, blur)
+
+    def image(self, R: np.ndarray, x, blur: float) -> np.ndarray:
+        """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
+        image of a thick gel), a share ``haze`` of the light spread over ``haze_sigma``."""
+        R = R.astype(np.float32)
+        T = cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f)
+        haze = min(max(float(x[11]), 0.0), 0.5)
+        if haze > 0:
+            T = (1 - haze) * T + haze * cv2.GaussianBlur(R, (0, 0), max(float(x[12]), 2.0) / self.f)
+        return T
 
     def cure_jacobian(self, B: np.ndarray, x, dose, modulations, blur: float):
         """T for a dose map ``dose`` (scalar or array) and its derivatives along each of
         ``modulations`` (d dose / d theta maps): dT/dtheta = G_blur * (exp(-u/k) B / k dD/dtheta)."""
         gel, k = float(x[1]), max(float(x[2]), 1e-3)
-        sb = max(blur, 0.3) / self.f
         u = np.maximum(dose * B - gel, 0.0)
         e = np.exp(-u / k)
-        T = cv2.GaussianBlur((1.0 - e).astype(np.float32), (0, 0), sb)
+        T = self.image(1.0 - e, x, blur)
         base = np.where(u > 0, e * B / k, 0.0)
-        return T, [cv2.GaussianBlur((base * mod).astype(np.float32), (0, 0), sb) for mod in modulations]
+        return T, [self.image(base * mod, x, blur) for mod in modulations]
 
     def __call__(self, m: np.ndarray, x, dose: float = 1.0, blur: float | None = None) -> np.ndarray:
         return self.cure(self.exposure(m, x), x, dose, blur=blur)
