@@ -132,12 +132,23 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
              and evidence(img, best, f, factor=2) < 3 * s.min_evidence]
     best = fine(best)
     z_min, rival = float("inf"), None
+
+    def separated(a, b):
+        """Whether a barrier lies between two poses: the pose halfway between them (the
+        nuisance numbers too) fits clearly worse than the better one. A grating's half
+        pitch or a star's half spoke does; a scale traded against the print's dose along
+        one valley does not."""
+        mid = Fit(0.5 * (a[0].M + b[0].M), 0.5 * (a[0].gain + b[0].gain), 0.5 * (a[0].offset + b[0].offset),
+                  0.5 * (a[0].q + b[0].q), a[0].sigma, a[0].pose_sd, True, 0)
+        return evidence(img, a, (mid, predicted_print(full, B_full, x, mid))) >= s.min_evidence
     for f in (fine(f) for f in close):
         if pose_distance(f[0].M, best[0].M, n, MARGIN) <= s.distinct_px:
             continue  # it came back to the same pose at full resolution
         z = evidence(img, best, f)
         if z < 0:
             best, f, z = f, best, -z
+        if z < s.min_evidence and not separated(best, f):
+            continue  # one valley with the best pose, not a second pose: the pose spread covers it
         if z < z_min:
             z_min, rival = z, f[0].M
     return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
@@ -154,7 +165,9 @@ def implausible(corr: dict, s: Settings) -> dict:
     """
     if len(corr) < 3:
         return {}
-    noise = {k: c.noise for k, c in corr.items()}
+    # pixel noise from the high-passed image (robust to how much of the field is print,
+    # unlike the background fit's residual), relative to the background level
+    noise = {k: 1.4826 * float(np.median(np.abs(c.c - cv2.GaussianBlur(c.c, (0, 0), 2.0)))) for k, c in corr.items()}
     bg = {k: c.background for k, c in corr.items()}
     mn, mb = float(np.median(list(noise.values()))), float(np.median(list(bg.values())))
     f = s.implausible_factor

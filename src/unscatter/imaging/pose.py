@@ -196,8 +196,11 @@ def _warp(img: np.ndarray, Ms: np.ndarray, shape) -> np.ndarray:
 # cannot tell them apart (dose against gel, edge offset against scale for one feature);
 # the pose's spread then shows what the print leaves open.
 # (The gel dose is the batch's: with the dose free it only trades against it.)
-NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 1.5),
-            ("edge_c2", 0.0, 1.0), ("edge_s2", 0.0, 1.0))
+# Erosion or swelling is the material's, alike for every print of a batch: a print's own
+# edge offset only takes up small differences, or it trades against the scale of any
+# print that is one feature (a star, a disc, a block).
+NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 0.5),
+            ("edge_c2", 0.0, 0.3), ("edge_s2", 0.0, 0.3))
 _BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "edge": (-6.0, 6.0),
            "edge_c2": (-4.0, 4.0), "edge_s2": (-4.0, 4.0)}
 
@@ -297,7 +300,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         q = np.clip(q + delta[npose + 2 :], lo, hi)
         if move < tol:
             break
-    converged = move < max(10 * tol, 0.1)  # still moving by a tenth of a pixel: not settled
+    converged = move < 0.25  # still moving by a quarter pixel a step: not settled (less is in the pose spread)
     sd = _pose_sd(H_data, norm, npose, r * np.sqrt(w), sigma, mode, corners) * f if spread else float("nan")
     M_full = (Ms @ np.linalg.inv(S))[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
@@ -435,8 +438,8 @@ def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 8, clip: float = 
     """How strongly the image prefers fit ``a`` over fit ``b`` (z >> 0: a; z << 0: b).
 
     ``a`` and ``b`` are (Fit, full-resolution template of that fit). Both are compared
-    on the same image pixels (the union of their footprints), with squared residuals
-    clipped at ``clip`` robust sigmas so that no single speck decides. Returns
+    on the same image pixels (the union of their footprints, where their predictions
+    differ), with squared residuals clipped so that no single speck decides. Returns
     z = sum(e_b) / sqrt(sum(e_b^2)) over blocks of ``block`` px (see the module doc).
     """
     Pa, fa = predicted_image(a[0], a[1], img.shape, factor)
@@ -448,7 +451,10 @@ def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 8, clip: float = 
     amp = min(abs(a[0].gain) * float(np.percentile(a[1], 99)), abs(b[0].gain) * float(np.percentile(b[1], 99)))
     differ = np.abs(Pa - Pb) > 0.1 * max(amp, 1e-9)
     region = (fa | fb) & np.isfinite(img) & differ
-    s2 = (clip * max(a[0].sigma, b[0].sigma)) ** 2
+    # clipped at half the print's amplitude (and no less than ``clip`` noise sigmas): a speck
+    # cannot decide, but an edge one fit places and the other misses still counts; clipped
+    # at the noise alone, both fits would be clipped alike wherever they differ
+    s2 = max(0.5 * amp, clip * max(a[0].sigma, b[0].sigma)) ** 2
     ra = np.minimum((img - Pa) ** 2, s2)
     rb = np.minimum((img - Pb) ** 2, s2)
     e = np.where(region, rb - ra, 0.0)
