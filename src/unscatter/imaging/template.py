@@ -57,18 +57,15 @@ class PrintTemplate:
             b = (1 - tail) * b + tail * cv2.GaussianBlur(e, (0, 0), max(tail_sigma, 1.0) / f)
         return b
 
-    def cure(self, B: np.ndarray, x, dose: float = 1.0, with_gradient: bool = False, blur: float | None = None):
-        """The imaged print T for the scattered dose B; with its derivative in ``dose``.
+    def cure(self, B: np.ndarray, x, dose=1.0, blur: float | None = None):
+        """The imaged print T for the scattered dose B (``dose`` a number or a map).
 
         ``blur`` (design px) overrides the batch's microscope blur: focus varies by image."""
         gel, k = float(x[1]), max(float(x[2]), 1e-3)
         blur = max(float(x[10]) if blur is None else blur, 0.3)
         u = np.maximum(dose * B - gel, 0.0)
         e = np.exp(-u / k)
-        T = self.image(1.0 - e, x, blur)
-        if not with_gradient:
-            return T
-        return T, self.image(np.where(u > 0, e * B / k, 0.0), x, blur)
+        return self.image(1.0 - e, x, blur)
 
     def image(self, R: np.ndarray, x, blur: float) -> np.ndarray:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
