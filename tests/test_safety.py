@@ -247,23 +247,6 @@ def test_register_options_are_bounded(batch, tmp_path, option, value):
     assert res.exit_code == 2 and option in res.output and not (tmp_path / "out").exists()
 
 
-def test_register_bounds_are_the_schemas():
-    from unscatter.limits import REGISTRATION
-
-    schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
-    props = schema["properties"]["registration"]["properties"]
-    for key, r in REGISTRATION.items():
-        bounds = {k: v for k, v in props[key].items() if k in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum")}
-        assert bounds == r.schema(), key
-
-
-def test_calibration_models_are_the_schemas():
-    from unscatter.model import model_names
-
-    schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
-    assert schema["properties"]["calibration"]["properties"]["model"]["enum"] == model_names()
-
-
 def _batch_yaml(batch: Path, text: str) -> Path:
     p = batch / "batch.yaml"
     p.write_text("pixel_size_um: 2.96\nexposure_s: 20\nmax_intensity_mw_cm2: 20.8\nmaterial: GelMA\n" + text)

@@ -42,12 +42,14 @@ import numpy as np
 
 from . import __version__
 from .io import InputError, output_dir
+from .settings import AUGMENTATION
 
 log = logging.getLogger(__name__)
 
 FORMAT = "unscatter-augment/1"
 ARRAYS = ("masks", "prints", "family", "train", "test")
-TEST_FRACTION = 0.1  # Guan et al. 2022, 'Neural network training': 3,600 / 400 of 4,000
+TEST_FRACTION = AUGMENTATION.default.test_fraction  # Guan et al. 2022, 'Neural network training': 3,600 / 400 of 4,000
+_AUG = AUGMENTATION.default
 
 
 # ----------------------------------------------------------------------------- split
@@ -98,11 +100,11 @@ def augment(
     params_path,
     out_zarr,
     count: int,
-    seed: int = 0,
+    seed: int = _AUG.seed,
     families=None,
-    size: int = 512,
+    size: int = _AUG.size,
     test_fraction: float = TEST_FRACTION,
-    workers: int | None = None,
+    workers: int | None = _AUG.workers,
     block: int = 16,
     device: str | None = None,
     progress: bool = True,
@@ -130,10 +132,7 @@ def augment(
     t0 = time.perf_counter()
     params_path = params_path_of(params_path)
     params = load_params(params_path)  # errors name the file
-    if count < 1:
-        raise ValueError("count must be at least 1")
-    if size < 8:
-        raise ValueError("size must be at least 8 pixels")
+    AUGMENTATION.make(count=count, seed=seed, size=size, test_fraction=test_fraction, workers=workers)
     counts = family_counts(count, families)
     labels = augmentation_families(count, seed, families)
     names = list(AUGMENT_FAMILIES)

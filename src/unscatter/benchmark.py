@@ -44,12 +44,13 @@ import numpy as np
 
 from . import metrics
 from .io import InputError, list_pngs, output_dir, read_batch_meta, read_mask, read_print, read_tsv, write_png, write_tsv, write_yaml
+from .settings import BENCHMARK, PAPER_PIXEL_SIZE_UM
 
 log = logging.getLogger(__name__)
 
 IDENTICAL = "identical"
 # Guan et al. 2022, 'Results': identical masks at 100, 75, 70 and 50 % grey (Fig. 6 shows 100/75/70).
-IDENTICAL_DOSES = (1.0, 0.75, 0.70, 0.50)
+IDENTICAL_DOSES = tuple(BENCHMARK.default.doses)
 # docs/design.md, 'Metrics': the PV band is between prints at 90 % and 110 % of the nominal dose.
 PV_EXPOSURES = (0.9, 1.1)
 
@@ -278,6 +279,16 @@ def write_results(rows: list[dict], out_dir, designs, prints: dict, masks: dict 
         fig_bars(out_dir / "metrics_bars.png", summary)
 
 
+def printer_pixel_size(params, source) -> float:
+    """The DMD pixel size (um) of a calibrated printer model, which the benchmark's
+    micrometre metrics need; InputError naming ``source`` when the model has none."""
+    px = params.pixel_size_um
+    if not px:
+        raise InputError(source, "the printer model has no pixel_size_um (the DMD pixel at the sample, in um); "
+                                 "the benchmark's micrometre metrics need it")
+    return float(px)
+
+
 def run_benchmark(designs_dir, masks_by_method: dict, out_dir, pixel_size_um: float, printer: Printer,
                   doses=IDENTICAL_DOSES, pv_band: bool = True, figures: bool = True) -> list[dict]:
     """Print every benchmark mask with ``printer``, score, write metrics.tsv and figures.
@@ -334,7 +345,7 @@ def write_print_job(masks_by_method: dict, designs, out_dir, pv_band: bool = Tru
 def _write_job(masks: dict, designs: dict, masks_by_method: dict, out_dir: Path, pv_band: bool, doses,
                batch_meta: dict | None) -> list[dict]:
     # Guan et al. 2022, 'Bioprinting setup': 2.96 um per pixel, 20 s exposure, 20.8 mW/cm2 at grey 255
-    meta = dict(pixel_size_um=2.96, exposure_s=20.0, max_intensity_mw_cm2=20.8, material="FILL IN",
+    meta = dict(pixel_size_um=PAPER_PIXEL_SIZE_UM, exposure_s=20.0, max_intensity_mw_cm2=20.8, material="FILL IN",
                 notes="FILL IN: benchmark prints; ids ending __x090/__x110 printed at 90/110 % of exposure_s")
     meta.update(batch_meta or {})
     if pv_band:

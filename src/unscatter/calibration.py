@@ -35,6 +35,7 @@ import torch
 
 from . import metrics
 from .io import InputError, output_dir, read_mask, read_print, read_tsv, read_yaml, write_rgb, write_tsv
+from .settings import CALIBRATION
 from .model import (
     FixedMasks,
     Params,
@@ -50,22 +51,25 @@ log = logging.getLogger(__name__)
 USABLE = ("ok", "empty")  # an empty print is a measurement too: nothing cured
 STATUSES = ("ok", "empty", "failed")
 
+# The user-facing settings (population, generations, folds, bootstrap, free_c0, refine,
+# threads) take their defaults and bounds from unscatter.settings.CALIBRATION.
+_D = CALIBRATION.default
 DEFAULTS = dict(
-    free_c0=False,  # the gauge: fix c0 = 1 (see unscatter.model)
+    free_c0=_D.free_c0,  # the gauge: fix c0 = 1 (see unscatter.model)
     bounds=None,  # {name: (lower, upper)} over the model's defaults
     ga_size=128,  # the GA samples every f-th pixel, f leaving about this many a side
-    population=48,
-    generations=30,
+    population=_D.population,
+    generations=_D.generations,
     cxpb=0.7,
     mutpb=0.3,
     tournament=3,
     elite=2,
-    refine=True,
+    refine=_D.refine,
     refine_size=256,  # the refinement's sampling (None: every pixel); the final check uses every pixel
     temperatures=(0.1, 0.03),  # smooth threshold, as a fraction of T, coarse to fine
     refine_iters=10,  # L-BFGS iterations per temperature
-    folds=4,  # k-fold over prints; 0 or 1: none
-    bootstrap=20,  # bootstrap replicates over prints; 0: none
+    folds=_D.folds,  # k-fold over prints; 0 or 1: none
+    bootstrap=_D.bootstrap,  # bootstrap replicates over prints; 0: none
     refit_population=12,
     refit_generations=6,
     refit_span=0.1,  # refit GA box: optimum +- span x bound range
@@ -77,7 +81,7 @@ DEFAULTS = dict(
     # torch CPU threads for the run (None: as configured). The tensors are small: with 2
     # threads on 2 shared cores OpenMP spin-waits, measured 3.5x slower than 1 thread on a
     # busy machine. Results depend (slightly) on the thread count: part of the settings.
-    threads=1,
+    threads=_D.threads,
 )
 
 OBJECTIVE = (
@@ -437,7 +441,7 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
 # ---------------------------------------------------------------------- calibrate
 
 
-def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **settings) -> Params:
+def calibrate(prints_dirs, out_dir, model: str = _D.model, seed: int = _D.seed, **settings) -> Params:
     """Calibrate ``model`` on registered prints; write params.yaml and the diagnostics.
 
     ``prints_dirs``: registration outputs (``<id>.png``, ``qc.tsv``, ``batch.yaml``);
@@ -454,7 +458,9 @@ def calibrate(prints_dirs, out_dir, model: str = "eq1", seed: int = 0, **setting
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
         raise TypeError(f"unknown calibration setting(s) {unknown}; known: {sorted(DEFAULTS)}")
-    s = {**DEFAULTS, **settings}
+    checked = {k: CALIBRATION.check(k, v) for k, v in dict(settings, model=model, seed=seed).items()
+               if k in CALIBRATION.settings and not (k == "threads" and v is None)}
+    s = {**DEFAULTS, **settings, **checked}
     inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
     before = torch.get_num_threads()
     with output_dir(out_dir, command="calibrate", inputs=inputs) as tmp:

@@ -4,14 +4,15 @@ that the Snakemake rule calls too. Heavy imports happen inside the commands."""
 from __future__ import annotations
 
 import logging
+import math
 import sys
 from pathlib import Path
 
 import click
 
 from . import __version__
+from . import settings as S
 from .io import InputError, check_png_name
-from .limits import REGISTRATION
 
 
 def _error_line(exc: Exception) -> str:
@@ -46,6 +47,42 @@ def main(verbose):
     logging.basicConfig(level=logging.DEBUG if verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
 
 
+# ------------------------------------------------------------------ options
+def _click_type(s: S.Setting):
+    """The click type that enforces a setting's bounds or choices."""
+    if s.choices is not None:
+        return click.Choice(list(s.choices))
+    r = s.range
+    if s.kind == "integer":
+        if r is None:
+            return click.INT
+        return click.IntRange(None if math.isinf(r.lo) else int(r.lo), None if math.isinf(r.hi) else int(r.hi),
+                              min_open=r.lo_open, max_open=r.hi_open)
+    if s.kind == "number":
+        if r is None:
+            return click.FLOAT
+        return click.FloatRange(None if math.isinf(r.lo) else r.lo, None if math.isinf(r.hi) else r.hi,
+                                min_open=r.lo_open, max_open=r.hi_open)
+    return click.STRING
+
+
+def option(stage: S.Stage, name: str, *decls: str, **kw):
+    """A click option made from ``stage``'s setting ``name`` (unscatter.settings): its
+    default, its help and a type that enforces its bounds. ``kw`` adds to or replaces
+    what click gets (e.g. ``default=None`` for an option that overrides a file)."""
+    s = stage[name]
+    flag = "--" + name.replace("_", "-")
+    if s.kind == "boolean":
+        decls = decls or (f"{flag}/--no-{flag[2:]}",)
+    else:
+        decls = decls or (flag,)
+        kw.setdefault("type", _click_type(s))
+    kw.setdefault("default", s.default)
+    kw.setdefault("show_default", s.default is not None)
+    kw.setdefault("help", s.description)
+    return click.option(*decls, name, **kw)
+
+
 # ----------------------------------------------------------------------- masks
 @main.group(cls=_Group)
 def masks():
@@ -54,9 +91,9 @@ def masks():
 
 @masks.command("trial")
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--count", default=32, show_default=True, help="Number of trial masks (paper: 32).")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--size", default=512, show_default=True, help="Mask side in DMD pixels (paper: 512).")
+@option(S.TRIAL_MASKS, "count")
+@option(S.TRIAL_MASKS, "seed")
+@option(S.TRIAL_MASKS, "size")
 def masks_trial(out_dir, count, seed, size):
     """The paper's trial masks: checkerboards, rectangles, circles (8-bit PNG)."""
     from .masks import write_trial_masks
@@ -76,7 +113,7 @@ def lab():
 @click.argument("out_batch", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--lab-config", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Overrides of the lab's defaults (YAML).")
 @click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path), help="Where the truth goes (default OUT_BATCH.truth).")
-@click.option("--seed", type=int, help="Lab seed (overrides the config).")
+@option(S.LAB, "seed", default=None, help="Seed of the lab's randomness (default: the lab config's).")
 @click.option("--job", "job_tsv", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="A print job's job.tsv (columns id, exposure): print each mask at that factor of the nominal exposure.")
 def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
@@ -90,20 +127,13 @@ def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
 
 
 # -------------------------------------------------------------------- register
-def _float_range(r) -> click.FloatRange:
-    """A click type for a ``limits.Range`` (the bounds the workflow schema has too)."""
-    return click.FloatRange(r.lo, r.hi, min_open=r.lo_open, max_open=r.hi_open)
-
-
 @main.command("register")
 @click.argument("batch_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--mode", type=click.Choice(["similarity", "affine"]), default="similarity", show_default=True)
-@click.option("--level", default=0.5, show_default=True, type=_float_range(REGISTRATION["level"]),
-              help="Print = density above this fraction of the batch's dense-polymer level.")
-@click.option("--min-score", default=0.6, show_default=True, type=_float_range(REGISTRATION["min_score"]),
-              help="QC: lowest registration score accepted.")
-@click.option("--skip-failed/--no-skip-failed", default=False, show_default=True, help="Go on when a print fails QC (it is still never used).")
+@option(S.REGISTRATION, "mode")
+@option(S.REGISTRATION, "level")
+@option(S.REGISTRATION, "min_score")
+@option(S.REGISTRATION, "skip_failed")
 def register(batch_dir, out_dir, mode, level, min_score, skip_failed):
     """Register and threshold the microscope images of a print batch to mask coordinates."""
     from .imaging import RegistrationError, register_batch
@@ -133,26 +163,24 @@ def _bounds(ctx, param, value):
 @main.command("calibrate")
 @click.argument("prints_dirs", nargs=-1, required=True, type=click.Path(file_okay=False, path_type=Path))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
-@click.option("--model", default="eq1", show_default=True, help="Printer model (eq1: Guan et al. 2022, Eq. 1).")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--population", default=48, show_default=True, help="GA population.")
-@click.option("--generations", default=30, show_default=True, help="GA generations.")
+@option(S.CALIBRATION, "model")
+@option(S.CALIBRATION, "seed")
+@option(S.CALIBRATION, "population")
+@option(S.CALIBRATION, "generations")
 @click.option("--bounds", multiple=True, callback=_bounds, metavar="NAME=LO,HI", help="Search bounds of a parameter (repeatable).")
-@click.option("--free-c0", is_flag=True, help="Fit c0 too (the paper's 7 parameters; the gauge is then not fixed).")
-@click.option("--refine/--no-refine", default=True, show_default=True, help="Gradient refinement after the GA.")
-@click.option("--folds", default=4, show_default=True, help="k-fold cross-validation over prints (0: none).")
-@click.option("--bootstrap", default=20, show_default=True, help="Bootstrap replicates over prints (0: none).")
+@option(S.CALIBRATION, "free_c0")
+@option(S.CALIBRATION, "refine")
+@option(S.CALIBRATION, "folds")
+@option(S.CALIBRATION, "bootstrap")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
-@click.option("--threads", type=int, default=None, help="torch CPU threads (default 1: fastest when cores are shared).")
+@option(S.CALIBRATION, "threads")
 def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device, threads):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
 
     from .calibration import calibrate
-    from .model import default_params, model_names
+    from .model import default_params
 
-    if model not in model_names():
-        raise click.BadParameter(f"unknown model {model!r}; known: {', '.join(model_names())}", param_hint="--model")
     try:
         default_params(model, bounds=bounds)
     except ValueError as exc:
@@ -160,9 +188,9 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
 
     with warnings.catch_warnings():  # the flags are echoed below, once, without a source line
         warnings.simplefilter("ignore", UserWarning)
-        more = {} if threads is None else dict(threads=threads)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
-                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device, **more)
+                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device,
+                      threads=threads)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""
@@ -212,13 +240,14 @@ def _families(values):
 @main.command("augment")
 @click.argument("model_params", type=click.Path(dir_okay=False, path_type=Path))
 @click.argument("out_zarr", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--count", default=4000, show_default=True, help="Mask/print pairs (paper: 4,000).")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--size", default=512, show_default=True, help="Mask side in DMD pixels (paper: 512).")
+@option(S.AUGMENTATION, "count", default=S.PRESET_PAIRS["default"], show_default=True,
+        help=f"Mask/print pairs (what the default training preset is sized for; paper: {S.PRESET_PAIRS['paper']}).")
+@option(S.AUGMENTATION, "seed")
+@option(S.AUGMENTATION, "size")
 @click.option("--family", "families", multiple=True, metavar="NAME[=WEIGHT]",
               help="Augmentation family and its share (repeat; default: all seven, equal shares).")
-@click.option("--test-fraction", default=0.1, show_default=True, help="Held-out share (paper: 400 of 4,000).")
-@click.option("--workers", type=int, default=None, help="Parallel workers (default: one per CPU core).")
+@option(S.AUGMENTATION, "test_fraction")
+@option(S.AUGMENTATION, "workers")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def augment_cmd(model_params, out_zarr, count, seed, size, families, test_fraction, workers, progress):
     """Augmentation masks and their simulated prints under MODEL_PARAMS (params.yaml) -> OUT_ZARR."""
@@ -239,19 +268,18 @@ def augment_cmd(model_params, out_zarr, count, seed, size, families, test_fracti
 @main.command("train")
 @click.argument("dataset", type=click.Path(file_okay=False, path_type=Path))
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--preset", type=click.Choice(["default", "paper", "ci"]), default="default", show_default=True,
-              help="paper: the paper's sizes (for a GPU); default: two CPU cores; ci: seconds.")
-@click.option("--epochs", type=int, help="Epochs (paper: 200).")
-@click.option("--width", type=int, help="Base channels of the U-Nets (paper: 64).")
-@click.option("--scale", type=int, help="Train on the field area-downsampled by this factor.")
-@click.option("--crop", type=int, help="Train on random crops of this side (at the training scale).")
-@click.option("--coords/--no-coords", default=None, help="X, Y coordinate channels as extra inputs.")
-@click.option("--lr", type=float, help="Adam learning rate (paper: 1e-5).")
-@click.option("--batch", type=int, help="Batch size (paper: 10).")
-@click.option("--seed", type=int)
-@click.option("--max-train", type=int, help="Use at most this many training pairs.")
+@option(S.TRAINING, "preset")
+@option(S.TRAINING, "epochs")
+@option(S.TRAINING, "width")
+@option(S.TRAINING, "scale")
+@option(S.TRAINING, "crop")
+@option(S.TRAINING, "coords")
+@option(S.TRAINING, "lr")
+@option(S.TRAINING, "batch")
+@option(S.TRAINING, "seed")
+@option(S.TRAINING, "max_train")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
-@click.option("--threads", type=int, default=None, help="torch CPU threads.")
+@option(S.TRAINING, "threads")
 @click.option("--resume/--no-resume", default=True, show_default=True, help="Continue from OUT_DIR/checkpoint.pt.")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def train_cmd(dataset, out_dir, preset, epochs, width, scale, crop, coords, lr, batch, seed, max_train, device,
@@ -295,14 +323,14 @@ def _png_name(ctx, param, value):
                    "ilt: the calibrated params.yaml or its calibration folder.")
 @click.option("--params", "params_path", type=click.Path(path_type=Path),
               help="nn+ilt: the calibrated params.yaml (or its folder) for the ILT refinement.")
-@click.option("--method", type=click.Choice(["nn", "ilt", "nn+ilt"]), default="nn", show_default=True)
+@click.option("--method", type=click.Choice(list(S.METHODS)), default="nn", show_default=True)
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), required=True, callback=_png_name,
               help="Mask PNG to write.")
 @click.option("--frame", "frame_png", type=click.Path(dir_okay=False, path_type=Path), callback=_png_name,
               help="Also write the full 2560x1600 DMD frame with the mask in it (all other mirrors off).")
-@click.option("--offset", type=int, nargs=2, default=None, metavar="ROW COL",
+@click.option("--offset", type=click.IntRange(min=0), nargs=2, default=None, metavar="ROW COL",
               help="Top-left mirror of the mask in the DMD frame (default: centred).")
-@click.option("--robust", is_flag=True, help="ILT: optimise for 90, 100 and 110 % of the nominal dose at once.")
+@option(S.COMPENSATION, "robust", help=S.COMPENSATION["robust"].description + " Not for --method nn.")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 def compensate_cmd(design, model_dir, params_path, method, output, frame_png, offset, robust, device):
     """The grayscale mask that prints DESIGN (PNG, nonzero = solid) despite the scattering."""
@@ -313,8 +341,9 @@ def compensate_cmd(design, model_dir, params_path, method, output, frame_png, of
         raise click.UsageError("for --method ilt, --model is the params.yaml; --params is for nn+ilt")
     if method == "nn+ilt" and params_path is None:
         raise click.UsageError("--method nn+ilt refines the network's mask with ILT: give --params (params.yaml)")
-    if method == "nn" and robust:
-        raise click.UsageError("--robust is an ILT setting (use --method ilt or nn+ilt)")
+    given = click.get_current_context().get_parameter_source("robust") != click.core.ParameterSource.DEFAULT
+    if method == "nn" and given:
+        raise click.UsageError("--robust/--no-robust is an ILT setting (use --method ilt or nn+ilt)")
     _passive_threads()
     from .compensation import compensate, frame_offset, write_mask_and_frame
     from .io import read_mask
@@ -358,18 +387,15 @@ def _summary_lines(rows) -> None:
 
 _method_option = click.option("--method", "methods", multiple=True, metavar="NAME=FOLDER",
                               help="Compensated masks of one method (repeat), e.g. ilt=results/compensated/eq1/ilt.")
-_doses_option = click.option("--doses", default="1,0.75,0.7,0.5", show_default=True,
-                             help="Grey levels of the identical mask (Guan et al. 2022, Fig. 6).")
+_doses_option = click.option("--doses", default=",".join(f"{d:g}" for d in S.BENCHMARK.default.doses), show_default=True,
+                             help=S.BENCHMARK["doses"].description + " Comma-separated.")
 
 
 def _doses(text: str) -> tuple:
     try:
-        d = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        raise click.BadParameter(f"{text!r}: comma-separated numbers in (0, 1]", param_hint="--doses") from None
-    if not d or not all(0 < x <= 1 for x in d):
-        raise click.BadParameter(f"{text!r}: grey levels must be in (0, 1]", param_hint="--doses")
-    return d
+        return tuple(S.BENCHMARK.check("doses", [float(x) for x in text.split(",")]))
+    except ValueError as exc:
+        raise click.BadParameter(f"{text!r}: comma-separated grey levels in (0, 1] ({exc})", param_hint="--doses") from None
 
 
 @main.group(cls=_Group)
@@ -402,8 +428,10 @@ def benchmark_simulate(designs_dir, out_dir, params_path, methods, doses):
     from .benchmark import run_benchmark, simulator_printer
     from .model import load_params
 
+    from .benchmark import printer_pixel_size
+
     params = load_params(params_path)
-    rows = run_benchmark(designs_dir, _methods(methods), out_dir, params.pixel_size_um or 2.96,
+    rows = run_benchmark(designs_dir, _methods(methods), out_dir, printer_pixel_size(params, params_path),
                          simulator_printer(params), doses=_doses(doses))
     _summary_lines(rows)
 
@@ -440,25 +468,23 @@ def report_cmd(results_dir, output):
 @click.option("--base", "base_params", required=True, type=click.Path(path_type=Path),
               help="The base params.yaml from `unscatter calibrate` (or its folder).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
-@click.option("--folds", type=int, default=None, help="k-fold over prints for the held-out residuals (default 4; --quick 3).")
-@click.option("--seed", default=0, show_default=True)
-@click.option("--candidates", default=None, metavar="A,B,...",
-              help="Candidate effects, comma-separated (default: the whole library).")
-@click.option("--quick", is_flag=True, help="Small fits and fewer folds: seconds to a minute (CI).")
-@click.option("--threads", type=int, default=None, help="torch CPU threads (default 1: fastest when cores are shared).")
+@option(S.DIAGNOSIS, "folds")
+@option(S.DIAGNOSIS, "seed")
+@click.option("--candidates", default=None, metavar="A,B,...", help=S.DIAGNOSIS["candidates"].description + " Comma-separated.")
+@option(S.DIAGNOSIS, "quick", "--quick", is_flag=True)
+@option(S.DIAGNOSIS, "threads")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, quick, threads, progress):
     """Residual diagnosis of a calibrated model on registered prints (PRINTS_DIR: registration outputs):
     held-out residual diagnostics, effects added while they lower the held-out error, the selected model."""
     from .diagnosis import diagnose
-    from .model import effect_names
 
     cands = None
     if candidates:
         cands = [c.strip() for c in candidates.split(",") if c.strip()]
-        bad = [c for c in cands if c not in effect_names()]
+        bad = [c for c in cands if c not in S.EFFECT_NAMES]
         if bad:
-            raise click.BadParameter(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(effect_names())}",
+            raise click.BadParameter(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(S.EFFECT_NAMES)}",
                                      param_hint="--candidates")
     more = {} if threads is None else dict(threads=threads)
     try:

@@ -35,11 +35,12 @@ import torch.nn.functional as F
 from scipy import ndimage
 
 from .io import InputError, list_pngs, output_dir, read_mask, write_png, write_tsv, write_yaml
+from . import settings as S
 from .model import Params, default_device, load_params
 
 log = logging.getLogger(__name__)
 
-METHODS = ("nn", "ilt", "nn+ilt")
+METHODS = S.METHODS
 
 # Guan et al. 2022, 'Bioprinting setup': the DMD has 2560 x 1600 micro-mirrors (rows, cols here).
 DMD_FRAME = (1600, 2560)
@@ -55,7 +56,7 @@ ILT_DEFAULTS = dict(
     edge_px=None,  # None: one kernel sigma (a quarter of the model's kernel support)
     sparsity=0.02,  # weight of the mean mask dose outside the dilated design
     margin_px=None,  # dilation of the design for the sparsity term; None: two kernel sigmas
-    robust=False,  # optimise over 90/100/110 % of the nominal dose at once
+    robust=S.COMPENSATION.default.robust,  # optimise over 90/100/110 % of the nominal dose at once
     doses=(0.9, 1.0, 1.1),  # the robust doses (docs/design.md, 'Metrics': the PV band's 90 and 110 %)
     init_logit=3.0,  # start: sigmoid(+-3) = 0.95 / 0.05 dose; also the clip of a given start mask
     # torch CPU threads while optimising (None: leave torch's setting). One: a second thread

@@ -55,6 +55,7 @@ from . import metrics
 from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
 from .calibration import Objective, Space, band_factor, fit_params, grid_factor, load_prints, residual_rgb
 from .io import InputError, output_dir, write_tsv
+from .settings import DIAGNOSIS
 from .model import (
     EFFECTS,
     FixedMasks,
@@ -99,7 +100,7 @@ DEFAULTS = dict(
     # torch CPU threads (None: one per CPU core). The tensors are small and OpenMP threads spin-wait:
     # measured on 2 shared cores, 24 prints of 512 x 512, one evaluation at every 2nd pixel took
     # 24-38 ms with 1 thread and 28-76 ms with 2, its gradient 53-81 ms vs 76-650 ms.
-    threads=1,
+    threads=DIAGNOSIS.default.threads,
 )
 QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000,
              permutations=499)
@@ -504,7 +505,8 @@ def _figure_maps(path, data, before: Heldout, after: Heldout, n: int = 6) -> Non
 # ------------------------------------------------------------------------- the loop
 
 
-def diagnose(prints_dirs, base_params, out_dir, folds: int | None = None, seed: int = 0, candidates=None, quick: bool = False,
+def diagnose(prints_dirs, base_params, out_dir, folds: int | None = DIAGNOSIS.default.folds,
+             seed: int = DIAGNOSIS.default.seed, candidates=None, quick: bool = DIAGNOSIS.default.quick,
              progress: bool = True, **settings) -> dict:
     """The closed loop: held-out residual diagnostics, greedy effect selection, outputs.
 
@@ -519,6 +521,8 @@ def diagnose(prints_dirs, base_params, out_dir, folds: int | None = None, seed: 
     unknown = sorted(set(settings) - set(DEFAULTS))
     if unknown:
         raise TypeError(f"unknown diagnosis setting(s) {unknown}; known: {sorted(DEFAULTS)}")
+    DIAGNOSIS.make(folds=folds, seed=seed, quick=quick, candidates=candidates or [],
+                   **{k: v for k, v in settings.items() if k in DIAGNOSIS.settings and v is not None})
     s = {**DEFAULTS, **(QUICK if quick else {}), **settings}
     if folds is not None:
         s["folds"] = int(folds)

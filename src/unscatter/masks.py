@@ -14,6 +14,8 @@ from pathlib import Path
 import numpy as np
 from skimage.draw import disk, rectangle
 
+from .settings import TRIAL_MASKS
+
 TRIAL_FAMILIES = ("checkerboard", "rectangles", "circles")
 
 
@@ -68,13 +70,15 @@ def trial_ids(count: int) -> list[str]:
     return [f"trial_{i:03d}" for i in range(count)]
 
 
-def trial_masks(count: int = 32, seed: int = 0, size: int = 512, families=TRIAL_FAMILIES) -> dict:
+_TRIAL = TRIAL_MASKS.default
+
+
+def trial_masks(count: int = _TRIAL.count, seed: int = _TRIAL.seed, size: int = _TRIAL.size, families=TRIAL_FAMILIES) -> dict:
     """The trial set: families in turn, each mask from its own seeded stream.
 
     Mask i depends only on (seed, i), so a larger count extends a smaller one.
     """
-    if count < 1:
-        raise ValueError("count must be at least 1")
+    TRIAL_MASKS.make(count=count, seed=seed, size=size)
     for f in families:
         if f not in FAMILIES:
             raise ValueError(f"unknown mask family {f!r}; known: {sorted(FAMILIES)}")
@@ -89,7 +93,7 @@ def trial_masks(count: int = 32, seed: int = 0, size: int = 512, families=TRIAL_
     return out
 
 
-def write_trial_masks(out_dir, count: int = 32, seed: int = 0, size: int = 512) -> list[Path]:
+def write_trial_masks(out_dir, count: int = _TRIAL.count, seed: int = _TRIAL.seed, size: int = _TRIAL.size) -> list[Path]:
     """The trial masks as ``out_dir/<id>.png`` (a new folder, or an earlier one of these)."""
     from .io import output_dir, write_png
 

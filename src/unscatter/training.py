@@ -46,6 +46,7 @@ import torch.nn.functional as F
 
 from . import __version__, metrics
 from .io import InputError, claim_output_dir, write_tsv
+from .settings import PRESET_PAIRS, TRAINING
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +70,7 @@ DEFAULTS = dict(
     max_train=None,  # use at most this many training pairs (None: the whole train split)
     max_test=None,  # test pairs for the per-epoch test losses (None: the whole test split)
     eval_pairs=None,  # test pairs for eval.tsv (None: the whole test split)
-    seed=0,
+    seed=TRAINING.default.seed,
 )
 
 PRESETS = {
@@ -99,15 +100,15 @@ PRESETS = {
     "ci": dict(width=4, scale=4, crop=None, coords=False, epochs=2, batch=4, lr=2e-3, max_train=24, max_test=8, eval_pairs=8),
 }
 
-# The number of augmentation pairs each preset is sized for (the augment rule's count).
-PRESET_PAIRS = {"paper": 4000, "default": 1200, "ci": 40}
+# PRESET_PAIRS (unscatter.settings): the augmentation pairs each preset is sized for.
 
 # Settings that may change between a run and its resumption.
 _RESUMABLE = ("epochs", "eval_pairs")
 
 
-def settings_for(preset: str = "default", **overrides) -> dict:
-    """The full settings of a preset with ``overrides`` (None values are ignored)."""
+def settings_for(preset: str = TRAINING.default.preset, **overrides) -> dict:
+    """The full settings of a preset with ``overrides`` (None values are ignored; the
+    user-facing ones are checked against unscatter.settings.TRAINING's bounds)."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; known: {sorted(PRESETS)}")
     s = dict(DEFAULTS)
@@ -116,7 +117,7 @@ def settings_for(preset: str = "default", **overrides) -> dict:
         if k not in DEFAULTS:
             raise ValueError(f"unknown training setting {k!r}; known: {sorted(DEFAULTS)}")
         if v is not None:
-            s[k] = v
+            s[k] = TRAINING.check(k, v) if k in TRAINING.settings else v
     s["betas"] = tuple(float(b) for b in s["betas"])
     _check(s)
     return s
@@ -408,7 +409,7 @@ def _save_atomic(obj, path: Path) -> None:
 def train(
     dataset_zarr,
     out_dir,
-    preset: str = "default",
+    preset: str = TRAINING.default.preset,
     settings: dict | None = None,
     resume: bool | str = True,
     device=None,

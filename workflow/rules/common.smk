@@ -1,5 +1,6 @@
 # Config validation, the batch table, code versions and every input function.
-# Nothing here imports unscatter or torch: a dry-run and --lint stay fast.
+# Nothing here imports torch or the unscatter package (only its settings module, by
+# path): a dry-run and --lint stay fast.
 
 import hashlib
 import importlib.util
@@ -271,9 +272,20 @@ def all_input(wildcards):
 
 
 # ----------------------------------------------------------------------- networks
-# Pairs each training preset is sized for (unscatter.training.PRESET_PAIRS; kept here
-# so that a dry-run need not import torch).
-PRESET_PAIRS = {"paper": 4000, "default": 1200, "ci": 40}
+def _settings_module():
+    """unscatter.settings, loaded from its file: the one source of the settings' defaults
+    (the schema above is generated from it), without importing the package and torch."""
+    import sys
+
+    spec = importlib.util.spec_from_file_location("_unscatter_settings", PACKAGE_DIR / "settings.py")
+    settings = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = settings  # dataclasses look their module up
+    spec.loader.exec_module(settings)
+    return settings
+
+
+# Pairs each training preset is sized for.
+PRESET_PAIRS = _settings_module().PRESET_PAIRS
 
 
 def augment_count():

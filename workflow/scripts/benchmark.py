@@ -29,7 +29,7 @@ def main(snakemake):
         from unscatter.model import load_params
 
         params = load_params(snakemake.input.model)
-        rows = bm.run_benchmark(designs, masks, snakemake.output[0], params.pixel_size_um or 2.96,
+        rows = bm.run_benchmark(designs, masks, snakemake.output[0], bm.printer_pixel_size(params, snakemake.input.model),
                                 bm.simulator_printer(params), doses=tuple(p.doses))
     for s in bm.summarise(rows):
         log.info("%-16s IoU %.3f  pixel error %.3f  EPE %.1f um  PV band %.1f um (%d designs)",

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from ..settings import REGISTRATION
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_range
@@ -30,9 +31,9 @@ class RegistrationError(RuntimeError):
 
 @dataclass
 class Settings:
-    mode: str = "similarity"  # or "affine"
-    level: float = 0.5  # print = density >= level * dense polymer
-    min_score: float = 0.6
+    mode: str = REGISTRATION.default.mode  # or "affine"
+    level: float = REGISTRATION.default.level  # print = density >= level * dense polymer
+    min_score: float = REGISTRATION.default.min_score
     rotation_deg: tuple = (-20.0, 20.0)  # searched range of the image's rotation
     scale_range: tuple = (0.6, 1.6)  # image px per mask px, searched when no camera pixel size is known
     scale_tolerance: float = 0.05  # with a known camera pixel size, the scale is searched within this
@@ -52,7 +53,7 @@ class Settings:
     min_misfit_px: float = 3.0  # ... and at least this (px per edge px): a mean edge error no print of its mask has
     max_misfit_px: float = 8.0  # misfit (px per edge px) that fails without a batch to compare with
     max_pose_sd: float = 0.5  # design px: a pose known worse than this (1 sd, RMS over the field) fails
-    skip_failed: bool = False
+    skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
 
@@ -261,7 +262,11 @@ def _overlay(reg: np.ndarray, mask: np.ndarray, printed: np.ndarray, dense: floa
 # --------------------------------------------------------------------------- batch
 
 
-def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0.6, skip_failed=False, progress=True, **kw) -> list[dict]:
+_REG = REGISTRATION.default
+
+
+def register_batch(batch_dir, out_dir, mode=_REG.mode, level=_REG.level, min_score=_REG.min_score,
+                   skip_failed=_REG.skip_failed, progress=True, **kw) -> list[dict]:
     """Register and threshold every image of a batch; write prints, qc.tsv, overlays.
 
     The output folder is written beside and swapped in whole (``io.output_dir``): it
@@ -269,16 +274,8 @@ def register_batch(batch_dir, out_dir, mode="similarity", level=0.5, min_score=0
     batch, and a rerun leaves nothing stale. QC failures raise after the output is
     written, so qc.tsv and the overlays show why.
     """
-    from ..limits import REGISTRATION
-
-    for name, value in (("level", level), ("min_score", min_score)):
-        r = REGISTRATION[name]
-        if not ((r.lo < value if r.lo_open else r.lo <= value) and (value < r.hi if r.hi_open else value <= r.hi)):
-            raise ValueError(f"registration {name} must lie in {'(' if r.lo_open else '['}{r.lo}, {r.hi}"
-                             f"{')' if r.hi_open else ']'}, not {value}")
-    s = Settings(mode=mode, level=level, min_score=min_score, skip_failed=skip_failed, **kw)
-    if mode not in ("similarity", "affine"):
-        raise ValueError(f"mode must be 'similarity' or 'affine', not {mode!r}")
+    checked = REGISTRATION.make(mode=mode, level=level, min_score=min_score, skip_failed=skip_failed)
+    s = Settings(mode=checked.mode, level=checked.level, min_score=checked.min_score, skip_failed=checked.skip_failed, **kw)
     batch = open_batch(batch_dir)
     with output_dir(out_dir, command="register", inputs=[batch_dir]) as tmp:
         rows = _register(batch, Path(batch_dir), tmp, Path(out_dir), s, progress)
