@@ -358,5 +358,5 @@ def test_too_few_prints_or_folds_are_rejected(tmp_path):
         diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", quick=True, **QUIET)
     with pytest.raises(ValueError, match="folds"):
         diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", folds=1, **QUIET)
-    with pytest.raises(ValueError, match="unknown candidate"):
+    with pytest.raises(ValueError, match="diagnosis.candidates item: 'glow' is not one of"):
         diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", candidates=["glow"], **QUIET)

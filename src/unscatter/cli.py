@@ -102,6 +102,35 @@ def masks_trial(out_dir, count, seed, size):
     click.echo(f"wrote {len(paths)} trial masks to {out_dir}")
 
 
+@masks.command("design")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@option(S.TRIAL_MASKS, "count")
+@click.option("--model", "model", type=click.Path(exists=True, path_type=Path),
+              help="Sequential design: a calibration's params.yaml (or folder) or a diagnosis folder; the next "
+                   "prints go where its fit is least sure. Default: before any print, a broad prior.")
+@click.option("--prints", "prints", multiple=True, type=click.Path(exists=True, file_okay=False, path_type=Path),
+              help="Registration folders of prints already made (repeat): the design complements them.")
+@option(S.TRIAL_MASKS, "pool")
+@option(S.TRIAL_MASKS, "draws")
+@option(S.TRIAL_MASKS, "seed")
+@option(S.TRIAL_MASKS, "size")
+@click.option("--progress/--no-progress", default=True, show_default=True)
+def masks_design(out_dir, count, model, prints, pool, draws, seed, size, progress):
+    """Trial masks designed to teach the printer model the most (D-optimal; masks, design.tsv,
+    parameters.tsv with the predicted parameter spread against random paper masks, design.png)."""
+    _passive_threads()
+    from .design import design_masks, write_design
+
+    if count > pool:
+        raise click.BadParameter(f"{count} masks cannot be chosen from a pool of {pool}", param_hint="--count")
+    r = design_masks(count, model=model, prints=list(prints) or None, pool=pool, draws=draws, seed=seed, size=size,
+                     progress=progress)
+    write_design(out_dir, r, inputs=[p for p in [model, *prints] if p is not None])
+    paper = r.get("criterion_paper")
+    click.echo(f"designed {count} masks from {pool} candidates in {r['seconds']:.0f} s: criterion {r['criterion']:.1f}"
+               + (f" (random paper masks: {paper:.1f})" if paper is not None else "") + f" -> {out_dir}")
+
+
 # ------------------------------------------------------------------------- lab
 @main.group(cls=_Group)
 def lab():

@@ -520,6 +520,8 @@ def partial(rng: np.random.Generator, size: int = 512) -> np.ndarray:
     90 at the other, so the print ends where the dose falls below the cure threshold
     (where depends on the lab) and the rest of the mask never prints."""
     base = _solid_base(rng, size, ("block", "rectangles", "circles", "checkerboard", "grating"))
+    while not base.any():  # a small field can leave a drawn pattern empty
+        base = _solid_base(rng, size, ("block", "rectangles", "circles", "checkerboard", "grating"))
     hi, lo = float(rng.uniform(200, 255)), float(rng.uniform(20, 90))
     th = float(rng.uniform(0, 2 * np.pi))
     t = _across(size, np.rad2deg(th))

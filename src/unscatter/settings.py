@@ -254,6 +254,12 @@ TRIAL_MASKS = Stage(
     count=_int(32, "Number of trial masks (paper: 32).", lo=1),
     seed=_seed("Seed of the trial masks; mask i depends only on (seed, i).", default=1),
     size=_int(512, "Side of the design region in DMD pixels (paper: 512).", lo=64),
+    kind=_choice("paper", ("paper", "designed"),
+                 "paper - the paper's random checkerboards, rectangles and circles; designed - chosen from a pool of "
+                 "candidates to teach the printer model the most (unscatter.design: D-optimal on the print's "
+                 "sensitivity to the parameters, effects included)."),
+    pool=_int(240, "designed: candidate masks to choose from.", lo=1),
+    draws=_int(4, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
 )
 
 LAB = Stage(

@@ -1,14 +1,23 @@
-"""Adapter of rule trial_masks: unscatter.masks.write_trial_masks."""
+"""Adapter of rule trial_masks: unscatter.masks.write_trial_masks, or with
+trial_masks.kind 'designed' unscatter.design.design_masks."""
 
 from _adapter import start
 
 
 def main(snakemake):
     log = start(snakemake)
-    from unscatter.masks import write_trial_masks
-
     p = snakemake.params
     out_dir = snakemake.output[0]
+    if p.kind == "designed":
+        from unscatter.design import design_masks, write_design
+
+        r = design_masks(p.n, pool=p.pool, draws=p.draws, seed=p.seed, size=p.size, progress=False)
+        write_design(out_dir, r)
+        log.info("designed %d trial masks from %d candidates (criterion %.1f; random paper masks %.1f) in %.0f s -> %s",
+                 p.n, p.pool, r["criterion"], r["criterion_paper"], r["seconds"], out_dir)
+        return
+    from unscatter.masks import write_trial_masks
+
     paths = write_trial_masks(out_dir, count=p.n, seed=p.seed, size=p.size)
     log.info("wrote %d trial masks (seed %d, %d px) to %s", len(paths), p.seed, p.size, out_dir)
 

@@ -1,0 +1,99 @@
+"""Designed trial masks (unscatter.design): the pool, the information, the greedy
+D-optimal choice, the sequential inputs and the command."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from unscatter import design as D
+from unscatter.cli import main
+from unscatter.io import list_pngs, read_mask, write_tsv
+from unscatter.model import default_params
+
+torch.set_num_threads(1)
+SIZE = 128
+
+
+@pytest.fixture(scope="module")
+def params():
+    return D.full_params(default_params("eq1"))
+
+
+def test_pool_is_seeded_and_prints_something():
+    a, b = D.candidate_pool(24, seed=2, size=SIZE), D.candidate_pool(24, seed=2, size=SIZE)
+    assert list(a) == list(b) and all(np.array_equal(a[k], b[k]) for k in a)
+    assert len(a) == 24 and all(m.dtype == np.uint8 and m.shape == (SIZE, SIZE) and m.max() >= 60 for m in a.values())
+    c = D.candidate_pool(24, seed=3, size=SIZE)
+    assert any(not np.array_equal(a[k], c[k]) for k in a)
+    assert {k.rsplit("_", 1)[0] for k in D.candidate_pool(60, seed=0, size=SIZE)} == set(D.POOL_PATTERNS)
+
+
+def test_full_model_has_every_effect(params):
+    assert params.model.count("+") == 5 and "c0" not in params.free and "tail_fraction" in params.free
+
+
+def test_information_is_zero_without_edges_and_grows_with_them(params):
+    U, _ = D.design_prior(params, 1, seed=0)
+    blank = np.zeros((SIZE, SIZE), np.uint8)
+    block = blank.copy()
+    block[40:90, 40:90] = 255
+    fine = blank.copy()
+    fine[30:100, 30:100] = np.where((np.arange(70) // 5) % 2 == 0, 255, 0)[None, :]
+    F = D.information(np.stack([blank, block, fine]), params, U)
+    assert F.shape == (1, 3, len(params.free), len(params.free))
+    assert np.abs(F[0, 0]).max() < 1e-6 * np.abs(F[0, 1]).max()  # only the smooth threshold's far tail
+    for b in (1, 2):
+        assert np.allclose(F[0, b], F[0, b].T) and np.linalg.eigvalsh(F[0, b]).min() > -1e-6 * np.abs(F[0, b]).max()
+    j = params.free.index("sigma_px")
+    assert F[0, 2, j, j] > 2 * F[0, 1, j, j]  # lines 5 px apart tell sigma far better than one block
+
+
+def test_greedy_has_diminishing_returns_and_prefers_information(params):
+    K = len(params.free)
+    rng = np.random.default_rng(0)
+    G = rng.normal(size=(3, K, K))
+    strong = np.einsum("bij,bkj->bik", G, G)
+    F = np.stack([strong[0], strong[0], 0.01 * strong[1], strong[2]])[None]  # two copies of one mask
+    d = D.greedy(F, ["a", "a2", "weak", "c"], 3, np.eye(K))
+    assert "weak" not in d.ids
+    assert d.gains == sorted(d.gains, reverse=True)  # log det is submodular: gains never grow
+    assert d.sd.shape == (K,) and np.all(d.sd < 1.0)  # tighter than the unit prior
+
+
+def test_focus_is_the_schur_complement():
+    A = np.array([[[4.0, 1.0], [1.0, 2.0]]])
+    # information on parameter 0 after parameter 1: 4 - 1 * 1 / 2
+    assert D.criterion(A, focus=[0], focus_weight=1.0) == pytest.approx(np.log(np.linalg.det(A[0])) + np.log(3.5))
+
+
+def test_undecided_effects_read_from_the_ranking(tmp_path):
+    rows = [dict(round=1, candidate="(control)", accepted="False", ci_hi=0),
+            dict(round=1, candidate="heavy_tail", accepted="True", ci_hi=0.01),
+            dict(round=2, candidate="(control)", accepted="False", ci_hi=0),
+            dict(round=2, candidate="anisotropy", accepted="False", ci_hi=0.002),
+            dict(round=2, candidate="edge_offset", accepted="False", ci_hi=-0.001)]
+    write_tsv(tmp_path / "ranking.tsv", rows)
+    assert D.undecided_effects(tmp_path) == ["anisotropy"]
+
+
+def test_design_beats_random_paper_masks_on_its_criterion():
+    r = D.design_masks(3, pool=10, draws=1, seed=1, size=SIZE, progress=False)
+    assert len(r["masks"]) == 3 and r["criterion"] > r["criterion_paper"]
+    assert all(row["designed_sd"] < row["prior_sd"] for row in r["sd"])
+
+
+def test_cli_masks_design(tmp_path):
+    out = tmp_path / "designed"
+    res = CliRunner().invoke(main, ["masks", "design", str(out), "--count", "2", "--pool", "6", "--draws", "1",
+                                    "--size", str(SIZE), "--no-progress"])
+    assert res.exit_code == 0, res.output
+    masks = list_pngs(out)
+    assert list(masks) == ["design_000", "design_001"]
+    assert read_mask(masks["design_000"]).shape == (SIZE, SIZE)
+    for f in ("design.tsv", "parameters.tsv", "design.yaml", "design.png"):
+        assert (out / "design" / f).is_file()
+    bad = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "x"), "--count", "9", "--pool", "4"])
+    assert bad.exit_code == 2 and "--count" in bad.output and not (tmp_path / "x").exists()
