@@ -49,6 +49,7 @@ def _commands(group: click.Group, prefix=()):
 # differ in default (with the reason in cli.py's help text).
 STAGE_OF = {
     "masks trial": (S.TRIAL_MASKS, {}),
+    "masks design": (S.TRIAL_MASKS, {}),
     "lab print": (S.LAB, {"seed": None}),  # None: the lab config's seed
     "register": (S.REGISTRATION, {}),
     "calibrate": (S.CALIBRATION, {}),
@@ -155,6 +156,10 @@ def test_package_defaults_follow_the_settings():
     assert compensation.ILT_DEFAULTS["robust"] == S.COMPENSATION.default.robust
     assert tuple(compensation.METHODS) == S.METHODS
     assert benchmark.IDENTICAL_DOSES == tuple(S.BENCHMARK.default.doses)
+    from unscatter.design import design_masks
+
+    for k in ("pool", "draws", "seed", "size"):
+        assert _default(design_masks, k) == getattr(S.TRIAL_MASKS.default, k), k
 
 
 def test_model_and_effect_names_are_the_libraries():

@@ -152,6 +152,17 @@ def test_default_config_plans_every_stage(tmp_path):
                       ("virtual_lab_benchmark", "")])
 
 
+def test_next_trial_masks_are_planned_after_the_diagnosis(tmp_path):
+    """trial_masks.next > 0: the sequential design of the next batch joins the run."""
+    batch = fake_batch(tmp_path, "session1")
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)],
+                       trial_masks={"next": 8})
+    jobs = planned(configs=[cfg])
+    assert ("next_trial_masks", "") in jobs and ("diagnose", "") in jobs
+    assert ("next_trial_masks", "") not in planned(configs=[write_config(
+        tmp_path / "d.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)])])
+
+
 def test_slurm_profile_dry_run(tmp_path):
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
     out = snakemake("--dry-run", "--workflow-profile", "workflow/profiles/slurm", configs=[cfg]).stdout

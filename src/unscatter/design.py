@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from . import masks as M
+from .settings import TRIAL_MASKS
 from .model import FixedMasks, Params, default_params, effect_names, extend_params, get_model, load_params, masks_to_tensor
 
 log = logging.getLogger(__name__)
@@ -363,8 +364,9 @@ def undecided_effects(diagnosis_dir) -> list[str]:
             and float(r["ci_hi"]) > 0]
 
 
-def design_masks(count: int, *, model=None, prints=None, pool: int = 240, draws: int = 4, seed: int = 0,
-                 size: int = 512, focus_weight: float = 1.0, compare: bool = True, progress: bool = True,
+def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS.default.pool,
+                 draws: int = TRIAL_MASKS.default.draws, seed: int = TRIAL_MASKS.default.seed,
+                 size: int = TRIAL_MASKS.default.size, focus_weight: float = 1.0, compare: bool = True, progress: bool = True,
                  device=None) -> dict:
     """Choose ``count`` trial masks from a pool of ``pool`` candidates (see the module doc).
 
@@ -374,6 +376,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = 240, draws:
     (Design), table (rows per chosen mask), sd (rows per parameter: prior, designed,
     random paper masks of the same count), focus, seconds.
     """
+    TRIAL_MASKS.make(count=count, pool=pool, draws=draws, seed=seed, size=size)
     t0 = time.perf_counter()
     fitted, focus_effects = None, []
     if model is not None:

@@ -258,8 +258,10 @@ TRIAL_MASKS = Stage(
                  "paper - the paper's random checkerboards, rectangles and circles; designed - chosen from a pool of "
                  "candidates to teach the printer model the most (unscatter.design: D-optimal on the print's "
                  "sensitivity to the parameters, effects included)."),
-    pool=_int(240, "designed: candidate masks to choose from.", lo=1),
-    draws=_int(4, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
+    pool=_int(160, "designed: candidate masks to choose from.", lo=1),
+    draws=_int(3, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
+    next=_int(0, "Masks of the next print batch, designed around the diagnosis's model and the prints so far "
+              "(sequential design, results/next_trial_masks/); 0 - none.", lo=0),
 )
 
 LAB = Stage(

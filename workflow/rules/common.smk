@@ -268,6 +268,8 @@ def all_input(wildcards):
     targets += list(benchmark_masks().values())
     targets += benchmark_targets()
     targets.append(f"{RESULTS}/report.html")
+    if config["trial_masks"]["next"]:
+        targets.append(f"{RESULTS}/next_trial_masks")
     return targets
 
 

@@ -19,3 +19,28 @@ rule trial_masks:
         runtime=30,
     script:
         "../scripts/trial_masks.py"
+
+
+rule next_trial_masks:
+    """Sequential design: the masks of the next print batch, chosen where the diagnosis's
+    model is least sure, complementing the prints already made (trial_masks.next > 0)."""
+    input:
+        prints=registered_prints(),
+        model=diagnosis_dir(),
+    output:
+        directory(f"{RESULTS}/next_trial_masks"),
+    log:
+        f"{RESULTS}/logs/next_trial_masks.log",
+    params:
+        n=config["trial_masks"]["next"],
+        seed=config["trial_masks"]["seed"],
+        size=config["trial_masks"]["size"],
+        pool=config["trial_masks"]["pool"],
+        draws=config["trial_masks"]["draws"],
+        code=code_version("design", "masks", "model", "io"),
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    script:
+        "../scripts/next_trial_masks.py"
