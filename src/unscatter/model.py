@@ -33,7 +33,9 @@ Effects beyond Eq. 1 (``EFFECTS``: heavy_tail, anisotropy, dose_nonlinearity,
 illumination_field, edge_offset) are components added to the list or replacing one;
 a model with effects is named ``"eq1+heavy_tail+edge_offset"`` (``get_model``,
 ``model_with_effects``, ``extend_params``) and its params.yaml round-trips like Eq. 1's.
-``register_model`` names other combinations. Everything that simulates a print
+``register_model`` names other combinations. Multi-layer (3-D) prints: ``layer_dose`` and
+``layer_prints`` stack layer masks with depth attenuation and depth-growing scatter
+(``DEPTH_PARAMS``); one layer is the 2-D model exactly. Everything that simulates a print
 (calibration, augmentation, mask optimisation, benchmarks) goes through this module.
 """
 
@@ -1187,3 +1189,81 @@ def simulate(params, masks, device=None, batch: int = 8, temperature: float | No
             out.append(p.cpu().numpy())
     res = np.concatenate(out) if out else np.zeros((0,) + tuple(t.shape[1:]), bool)
     return res[0] if single else res
+
+
+# ------------------------------------------------------------------ multi-layer (3-D)
+#
+# A multi-layer print: layer masks exposed one after the other, bottom first. The light
+# of each layer goes into the material below its own layer (the layers cured before it),
+# attenuated with depth (Beer-Lambert) and scattered sideways more the deeper it goes.
+# A voxel gathers dose from its own layer's exposure and from every layer exposed after
+# it; it cures where the accumulated dose reaches T. With one layer this is the 2-D model
+# exactly (depth 0: no attenuation, no extra scatter).
+
+DEPTH_PARAMS = (
+    ParamSpec("att_length_um", 300.0, (10.0, 5000.0), "um",
+              "attenuation length of the light in the material (Beer-Lambert: exp(-depth / att_length_um))"),
+    ParamSpec("spread", 0.05, (0.0, 1.0), "um per um",
+              "growth of the lateral scatter with depth: extra Gaussian sd = spread * depth"),
+)
+DEPTH_CUTOFF = 1e-4  # layers deeper than where exp(-depth / att_length) falls below this get no light
+
+
+def depth_defaults() -> dict:
+    """Default values of the depth parameters (``DEPTH_PARAMS``)."""
+    return {p.name: float(p.default) for p in DEPTH_PARAMS}
+
+
+def _depth_tensor(depth: dict, name: str, P: int, device) -> torch.Tensor:
+    v = depth[name]
+    t = v if isinstance(v, torch.Tensor) else torch.as_tensor(np.atleast_1d(np.asarray(v, dtype=np.float64)))
+    t = t.to(device=device, dtype=DTYPE).reshape(-1)
+    return t.expand(P) if t.numel() == 1 else t
+
+
+def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float) -> torch.Tensor:
+    """(P, L, H, W) accumulated dose of each layer of a multi-layer print.
+
+    ``layers``: (L, H, W) layer masks in [0, 1] (or uint8), bottom first; ``theta``: the
+    2-D model's parameters (P sets); ``depth``: ``att_length_um`` and ``spread`` (floats
+    or (P,) tensors, ``DEPTH_PARAMS``); ``layer_um``: layer thickness; ``pixel_size_um``:
+    the DMD pixel at the sample.
+
+    Layer j gets, from the exposure of each layer l >= j at depth d = (l - j) layer_um,
+    exp(-d / att_length_um) x [2-D kernel * Gaussian(sd = spread d / pixel_size_um)] of
+    that layer's exposure (field x dose response x mask); the 2-D model's dose terms and
+    threshold then act on the sum. All exposures are Fourier transformed once; every
+    depth's transfer function is applied to the spectra of all layers at once, so the cost
+    is 2 L FFTs and L x (layers reached) multiplications.
+    """
+    M = _as_masks(layers)
+    L, H, W = M.shape
+    P = max(t.numel() for t in theta.values())
+    att = _depth_tensor(depth, "att_length_um", P, M.device)
+    spread = _depth_tensor(depth, "spread", P, M.device)
+    # layers that light reaches: exp(-k dz / att) >= DEPTH_CUTOFF (the deepest reach of the P sets)
+    reach = float(att.detach().max()) * -math.log(DEPTH_CUTOFF) / float(layer_um)
+    K = int(min(L, math.floor(reach) + 1))
+    extra_px = float(spread.detach().max()) * (K - 1) * float(layer_um) / float(pixel_size_um)
+    support = model.support_px({k: v.detach().cpu() for k, v in theta.items()}) + 4.0 * extra_px
+    shape = padded_shape((H, W), support)
+    spec = torch.fft.rfft2(model.exposure(M, theta), s=shape)  # (P, L, Nh, Nw//2+1)
+    fy = torch.fft.fftfreq(shape[0], device=M.device, dtype=DTYPE)
+    fx = torch.fft.rfftfreq(shape[1], device=M.device, dtype=DTYPE)
+    acc = spec.clone()  # depth 0: the layer's own exposure, as in 2-D
+    for k in range(1, K):
+        d_um = k * float(layer_um)
+        a = torch.exp(-d_um / att)  # (P,)
+        s = spread * (d_um / float(pixel_size_um))  # (P,) extra sd in design pixels
+        g = sampled_gaussian_transfer(fy, s)[:, :, None] * sampled_gaussian_transfer(fx, s)[:, None, :]
+        acc[:, : L - k] = acc[:, : L - k] + (a[:, None, None] * g)[:, None] * spec[:, k:]
+    return model.blur_spectrum(acc, theta, shape, (H, W))
+
+
+def layer_prints(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float,
+                 temperature: float | None = None) -> torch.Tensor:
+    """(P, L, H, W) voxel print of a multi-layer print: each layer's accumulated dose
+    (``layer_dose``) through the 2-D model's threshold (hard, or smooth with a temperature)."""
+    if temperature is not None and temperature <= 0:
+        raise ValueError("temperature must be > 0 (use None for the hard threshold)")
+    return model.threshold.apply(layer_dose(model, layers, theta, depth, layer_um, pixel_size_um), theta, temperature)
