@@ -25,8 +25,8 @@ from .microscope import image_print
 from .printer import Printer, polymer_density
 from .random import describe_lab, random_lab
 
-__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch", "read_job", "random_lab",
-           "describe_lab"]
+__all__ = ["Printer", "polymer_density", "image_print", "load_config", "print_batch", "print_layers", "read_job",
+           "random_lab", "describe_lab"]
 
 
 def default_config() -> dict:
@@ -75,6 +75,22 @@ def print_batch(mask_dir, out_batch, lab_config=None, truth_dir=None, overrides=
     truth_dir = Path(truth_dir) if truth_dir else out_batch.with_name(out_batch.name + ".truth")
     return run_batch(Path(mask_dir), out_batch, truth_dir, cfg, progress=progress, exposures=exposures,
                      inputs=[*inputs, *([lab_config] if lab_config else [])], source=lab_config or "lab config")
+
+
+def print_layers(mask_root, out_batch, lab_config=None, truth_dir=None, overrides=None, seed=None, progress=True):
+    """Print and image multi-layer masks: every folder ``mask_root/<id>/`` holds one PNG a
+    layer, bottom first. Writes a batch (masks/<id>/, images/<id>.tif confocal z-stacks,
+    batch.yaml with layer_um and z_step_um) and its truth (default ``<out_batch>.truth``:
+    voxel prints, density, the poses and z offsets); see ``unscatter.lab.layers``."""
+    from .layers import run_layers
+
+    cfg = load_config(lab_config, overrides)
+    if seed is not None:
+        cfg["seed"] = int(seed)
+    out_batch = Path(out_batch)
+    truth_dir = Path(truth_dir) if truth_dir else out_batch.with_name(out_batch.name + ".truth")
+    return run_layers(Path(mask_root), out_batch, truth_dir, cfg, progress=progress,
+                      inputs=[lab_config] if lab_config else [], source=lab_config or "lab config")
 
 
 def read_job(job_tsv) -> dict:

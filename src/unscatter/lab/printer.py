@@ -45,13 +45,15 @@ class Printer:
             f = f + hs["amplitude"] * np.exp(-((X - hs["x0"]) ** 2 + (Y - hs["y0"]) ** 2) / (2 * hs["width"] ** 2))
         return np.maximum(f, 0.0)
 
-    def _kernel_ft(self) -> np.ndarray:
+    def _kernel_ft(self, sigma_um: float | None = None) -> np.ndarray:
+        """The scattering kernel's rfft2 on the padded grid; ``sigma_um`` replaces the
+        core's sigma (deeper layers of a multi-layer print scatter more)."""
         k = self.cfg["kernel"]
         H, W = self.shape
         yy = np.fft.fftfreq(H, 1.0 / H)  # signed pixel offsets with wrap
         xx = np.fft.fftfreq(W, 1.0 / W)
         X, Y = np.meshgrid(xx, yy)
-        sig = k["sigma_um"] / self.pixel_um
+        sig = (k["sigma_um"] if sigma_um is None else sigma_um) / self.pixel_um
         an = k.get("anisotropy") or {}
         ratio = float(an.get("ratio", 1.0))
         th = np.deg2rad(float(an.get("angle_deg", 0.0)))
@@ -73,24 +75,35 @@ class Printer:
     # -- printing ------------------------------------------------------------
     def dose(self, mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Absorbed dose on the padded grid (1 = full grey at the centre, large area)."""
+        d = fft.irfft2(fft.rfft2(self.exposure(mask)) * self.kernel_ft, s=self.shape)
+        noise = self.cell_noise(rng)
+        scale = 1.0 + self.cfg["cells"]["print_to_print"] * rng.standard_normal()
+        return np.maximum(d * (1.0 + noise) * scale, 0.0)
+
+    def exposure(self, mask: np.ndarray) -> np.ndarray:
+        """Light delivered into the padded grid before scattering: field x (grey / 255)^gamma."""
         if mask.shape != (self.size, self.size):
             raise ValueError(f"mask must be {self.size}x{self.size}, got {mask.shape}")
-        g = (mask.astype(np.float64) / 255.0) ** float(self.cfg.get("dose_gamma", 1.0))
-        exposure = np.zeros(self.shape)
+        out = np.zeros(self.shape)
         p = self.pad
-        exposure[p : p + self.size, p : p + self.size] = g * self.field
-        d = fft.irfft2(fft.rfft2(exposure) * self.kernel_ft, s=self.shape)
+        g = (mask.astype(np.float64) / 255.0) ** float(self.cfg.get("dose_gamma", 1.0))
+        out[p : p + self.size, p : p + self.size] = g * self.field
+        return out
+
+    def cell_noise(self, rng: np.random.Generator) -> np.ndarray:
+        """Cells absorb and redirect light locally: a relative dose field correlated over a cell."""
         cells = self.cfg["cells"]
-        # cells absorb and redirect light locally: a multiplicative field correlated over a cell
         noise = ndimage.gaussian_filter(rng.standard_normal(self.shape), cells["cell_um"] / self.pixel_um / 2)
-        noise *= cells["dose_noise"] / max(noise.std(), 1e-12)
-        scale = 1.0 + cells["print_to_print"] * rng.standard_normal()
-        return np.maximum(d * (1.0 + noise) * scale, 0.0)
+        return noise * (cells["dose_noise"] / max(noise.std(), 1e-12))
 
     def density(self, mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Polymer density after the wash, on the padded grid."""
+        return self.cure(self.dose(mask, rng))
+
+    def cure(self, dose: np.ndarray) -> np.ndarray:
+        """Polymer density after the wash from the absorbed dose (padded grid)."""
         cure = self.cfg["cure"]
-        rho = polymer_density(self.dose(mask, rng), cure["threshold"], cure["gel_dose"])
+        rho = polymer_density(dose, cure["threshold"], cure["gel_dose"])
         off = float(self.cfg.get("edge_offset_um", 0.0)) / self.pixel_um
         r = int(round(abs(off)))
         if r > 0:  # the gel swells (or erodes) after the wash by a fixed distance
