@@ -394,6 +394,28 @@ def compensate_cmd(design, model_dir, params_path, method, output, frame_png, of
     click.echo(f"{method} mask for {design.name} -> {output}" + (f" (DMD frame -> {frame_png})" if frame_png else ""))
 
 
+@main.command("compensate3d")
+@click.argument("designs", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True,
+              help="The calibrated 2-D printer model (params.yaml, or its calibration or diagnosis folder).")
+@click.option("--depth", "depth_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True,
+              help="The depth parameters (YAML: att_length_um, spread, layer_um).")
+@click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
+              help="Output folder: <design>/NNN.png layer masks and compensation3d.tsv.")
+@click.option("--name", "names", multiple=True, help="Only this design (repeat); default: every design.")
+def compensate3d_cmd(designs, params_path, depth_path, out_dir, names):
+    """Layer masks that print 3-D DESIGNS (a folder of layer PNGs, bottom first, or a folder
+    of such folders) despite the light reaching the layers below: ILT over all layers."""
+    _passive_threads()
+    from .compensation3d import compensate3d_designs
+
+    rows = compensate3d_designs(designs, out_dir, params_path, depth_path, names=list(names) or None)
+    for r in rows:
+        click.echo(f"{r['design']:<18} 3-D IoU {r['model_iou']:.4f} (identical masks at the best dose "
+                   f"{r['identical_best_dose']:.2f}: {r['identical_model_iou']:.4f})  {r['seconds']:.1f} s")
+    click.echo(f"-> {out_dir}")
+
+
 # ------------------------------------------------------------ benchmark, report
 def _methods(values) -> dict:
     """--method NAME=DIR, repeated -> {name: folder of <design>.png}."""

@@ -131,6 +131,34 @@ def _pool(a: torch.Tensor, s: int) -> torch.Tensor:
     return F.avg_pool2d(a, s) if s > 1 else a
 
 
+def coarse_to_fine(z: torch.Tensor, stages, lr: float, temperatures, targets, loss_fn) -> tuple[torch.Tensor, list]:
+    """Adam on mask logits ``z`` (N, 1, H, W) over ``stages`` of (grid scale, steps),
+    coarse to fine: the logits are carried to each grid (averaged down at the start,
+    bilinear up later), ``targets`` ((N, 1, H, W) tensors) are averaged to it, and the
+    smooth threshold's temperature falls geometrically from the first to the second of
+    ``temperatures`` over all steps. ``loss_fn(z, scale, temperature, pooled targets)``
+    gives the loss. Returns the logits on the last grid and the loss per step."""
+    total = max(sum(n for _, n in stages), 1)
+    (t0, t1), step, losses, scale = temperatures, 0, [], None
+    for sc, n in stages:
+        z = _pool(z, sc) if scale is None else F.interpolate(z, scale_factor=scale / sc, mode="bilinear", align_corners=False)
+        scale = sc
+        if n == 0:
+            continue
+        pooled = [_pool(t, sc)[:, 0] for t in targets]
+        z = z.detach().requires_grad_(True)
+        opt = torch.optim.Adam([z], lr=float(lr))
+        for _ in range(n):
+            temperature = t0 * (t1 / t0) ** (step / max(total - 1, 1))
+            step += 1
+            opt.zero_grad(set_to_none=True)
+            loss = loss_fn(z, sc, temperature, pooled)
+            loss.backward()
+            opt.step()
+            losses.append(float(loss.detach()))
+    return z, losses
+
+
 def optimise_mask(design, params, init=None, **settings) -> tuple[np.ndarray, dict]:
     """ILT: the uint8 mask whose simulated print matches ``design``, and a summary.
 
@@ -174,32 +202,19 @@ def optimise_mask(design, params, init=None, **settings) -> tuple[np.ndarray, di
         skipped = [sc for sc, _n in s["schedule"] if H % sc or W % sc]
         if skipped:
             log.info("ILT: skipping grid scales %s that do not divide the design %s", skipped, d.shape)
-        total = max(sum(n for _, n in stages), 1)
-        (t0, t1), step, losses, scale = s["temperature"], 0, [], None
-        for sc, n in stages:
-            # carry the logits to this grid: average down at the start, bilinear up later
-            z = _pool(z, sc) if scale is None else F.interpolate(z, scale_factor=scale / sc, mode="bilinear", align_corners=False)
-            scale = sc
-            if n == 0:
-                continue
-            ys, ws, os_ = _pool(y, sc)[:, 0], _pool(w, sc)[:, 0], _pool(outside, sc)[:, 0]
-            wsum = ws.sum()
-            z = z.detach().requires_grad_(True)
-            opt = torch.optim.Adam([z], lr=float(s["lr"]))
-            for _ in range(n):
-                temperature = t0 * (t1 / t0) ** (step / max(total - 1, 1))
-                step += 1
-                opt.zero_grad(set_to_none=True)
-                m = torch.sigmoid(z[:, 0])
-                dose = model.dose(m, theta, scale=sc)[0]  # (1, h, w): Eq. 1 before the threshold
-                mismatch = 0.0
-                for k in doses:  # the dose is linear in the mask: k x nominal dose is k * dose
-                    printed = model.threshold.apply(k * dose, theta, temperature)
-                    mismatch = mismatch + (ws * (printed - ys) ** 2).sum() / wsum
-                loss = mismatch / len(doses) + float(s["sparsity"]) * (m * os_).mean()
-                loss.backward()
-                opt.step()
-                losses.append(float(loss.detach()))
+
+        def loss_fn(z, sc, temperature, pooled):
+            ys, ws, os_ = pooled
+            m = torch.sigmoid(z[:, 0])
+            dose = model.dose(m, theta, scale=sc)[0]  # (1, h, w): Eq. 1 before the threshold
+            mismatch = 0.0
+            for k in doses:  # the dose is linear in the mask: k x nominal dose is k * dose
+                printed = model.threshold.apply(k * dose, theta, temperature)
+                mismatch = mismatch + (ws * (printed - ys) ** 2).sum() / ws.sum()
+            return mismatch / len(doses) + float(s["sparsity"]) * (m * os_).mean()
+
+        z, losses = coarse_to_fine(z, stages, s["lr"], s["temperature"], (y, w, outside), loss_fn)
+        step = len(losses)
         mask = torch.round(torch.sigmoid(z.detach())[0, 0] * 255).to(torch.uint8).cpu().numpy()
         seconds = time.perf_counter() - t_start
         with torch.no_grad():

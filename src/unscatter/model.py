@@ -1221,13 +1221,15 @@ def _depth_tensor(depth: dict, name: str, P: int, device) -> torch.Tensor:
     return t.expand(P) if t.numel() == 1 else t
 
 
-def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float) -> torch.Tensor:
+def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float,
+               scale: float = 1.0) -> torch.Tensor:
     """(P, L, H, W) accumulated dose of each layer of a multi-layer print.
 
     ``layers``: (L, H, W) layer masks in [0, 1] (or uint8), bottom first; ``theta``: the
     2-D model's parameters (P sets); ``depth``: ``att_length_um`` and ``spread`` (floats
     or (P,) tensors, ``DEPTH_PARAMS``); ``layer_um``: layer thickness; ``pixel_size_um``:
-    the DMD pixel at the sample.
+    the DMD pixel at the sample; ``scale``: design pixels per grid pixel (a coarse grid,
+    as ``PrinterModel.dose`` takes it).
 
     Layer j gets, from the exposure of each layer l >= j at depth d = (l - j) layer_um,
     exp(-d / att_length_um) x [2-D kernel * Gaussian(sd = spread d / pixel_size_um)] of
@@ -1246,10 +1248,10 @@ def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um:
     K = int(min(L, math.floor(reach) + 1))
     extra_px = float(spread.detach().max()) * (K - 1) * float(layer_um) / float(pixel_size_um)
     support = model.support_px({k: v.detach().cpu() for k, v in theta.items()}) + 4.0 * extra_px
-    shape = padded_shape((H, W), support)
-    spec = torch.fft.rfft2(model.exposure(M, theta), s=shape)  # (P, L, Nh, Nw//2+1)
-    fy = torch.fft.fftfreq(shape[0], device=M.device, dtype=DTYPE)
-    fx = torch.fft.rfftfreq(shape[1], device=M.device, dtype=DTYPE)
+    shape = padded_shape((H, W), support, scale)
+    spec = torch.fft.rfft2(model.exposure(M, theta, scale), s=shape)  # (P, L, Nh, Nw//2+1)
+    fy = torch.fft.fftfreq(shape[0], device=M.device, dtype=DTYPE) / scale  # cycles per design pixel
+    fx = torch.fft.rfftfreq(shape[1], device=M.device, dtype=DTYPE) / scale
     acc = spec.clone()  # depth 0: the layer's own exposure, as in 2-D
     for k in range(1, K):
         d_um = k * float(layer_um)
@@ -1257,13 +1259,14 @@ def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um:
         s = spread * (d_um / float(pixel_size_um))  # (P,) extra sd in design pixels
         g = sampled_gaussian_transfer(fy, s)[:, :, None] * sampled_gaussian_transfer(fx, s)[:, None, :]
         acc[:, : L - k] = acc[:, : L - k] + (a[:, None, None] * g)[:, None] * spec[:, k:]
-    return model.blur_spectrum(acc, theta, shape, (H, W))
+    return model.blur_spectrum(acc, theta, shape, (H, W), scale)
 
 
 def layer_prints(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float,
-                 temperature: float | None = None) -> torch.Tensor:
+                 temperature: float | None = None, scale: float = 1.0) -> torch.Tensor:
     """(P, L, H, W) voxel print of a multi-layer print: each layer's accumulated dose
     (``layer_dose``) through the 2-D model's threshold (hard, or smooth with a temperature)."""
     if temperature is not None and temperature <= 0:
         raise ValueError("temperature must be > 0 (use None for the hard threshold)")
-    return model.threshold.apply(layer_dose(model, layers, theta, depth, layer_um, pixel_size_um), theta, temperature)
+    return model.threshold.apply(layer_dose(model, layers, theta, depth, layer_um, pixel_size_um, scale), theta,
+                                 temperature)
