@@ -1,0 +1,168 @@
+"""Calibration of the multi-layer model's depth parameters from 3-D trial prints.
+
+The 2-D parameters (Eq. 1, effects) come from the 2-D calibration; here the depth
+parameters (``model.DEPTH_PARAMS``: attenuation length, depth spread), and optionally
+some 2-D parameters jointly (e.g. T, which a multi-layer print's accumulated dose tests
+differently from a single layer), are fitted to voxel prints (layer masks and the cured
+voxels of each layer, in mask coordinates).
+
+Objective: the mean squared difference between the smooth-threshold voxel print and the
+measured one, as the 2-D calibration's (Guan et al. 2022's mean squared distance), cooled
+towards the hard threshold. Search: every parameter mapped to its bounds through a
+sigmoid, Adam from several starting attenuation lengths (the objective has flat regions
+where the light reaches no layer below), the best start kept. Two to four parameters and
+a smooth objective do not need the 2-D calibration's genetic algorithm.
+
+The trial prints (``trial_masks3d``): overhang bridges of several spans, channels of
+several widths, towers of several sizes, stairs, each a stack of layer masks.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import torch
+
+from .model import DEPTH_PARAMS, Params, default_device, layer_dose
+
+STARTS_UM = (30.0, 100.0, 400.0)  # starting attenuation lengths
+
+
+# ------------------------------------------------------------------- trial prints
+def _bridge(rng, L, n):
+    d = np.zeros((L, n, n), bool)
+    span = int(rng.integers(n // 5, n // 2))
+    w = int(rng.integers(n // 8, n // 4))
+    c0 = (n - span) // 2
+    r0 = int(rng.integers(4, n - w - 4))
+    pw = max(4, n // 12)
+    d[:, r0:r0 + w, c0 - pw:c0] = True
+    d[:, r0:r0 + w, c0 + span:c0 + span + pw] = True
+    top = int(rng.integers(1, max(2, L // 3) + 1))
+    d[L - top:, r0:r0 + w, c0 - pw:c0 + span + pw] = True
+    return d
+
+
+def _channel(rng, L, n):
+    d = np.zeros((L, n, n), bool)
+    d[:, n // 8:n - n // 8, n // 8:n - n // 8] = True
+    width = int(rng.integers(3, n // 6))
+    height = int(rng.integers(1, max(2, L // 2)))
+    j0 = int(rng.integers(1, max(2, L - height)))
+    c = n // 2 + int(rng.integers(-n // 8, n // 8 + 1))
+    d[j0:j0 + height, c - width // 2:c - width // 2 + width, :] = False
+    return d
+
+
+def _tower(rng, L, n):
+    d = np.zeros((L, n, n), bool)
+    for _ in range(int(rng.integers(2, 5))):
+        s = int(rng.integers(3, n // 4))
+        r, c = (int(v) for v in rng.integers(2, n - s - 2, size=2))
+        d[:, r:r + s, c:c + s] = True
+    return d
+
+
+def _stairs(rng, L, n):
+    d = np.zeros((L, n, n), bool)
+    steps = int(rng.integers(3, 7))
+    w = (n - n // 4) // steps
+    r0, r1 = n // 8, n - n // 8
+    for k in range(steps):
+        h = max(1, round(L * (k + 1) / steps))
+        d[:h, r0:r1, n // 8 + k * w:n // 8 + (k + 1) * w] = True
+    return d
+
+
+KINDS3D = {"bridge": _bridge, "channel": _channel, "tower": _tower, "stairs": _stairs}
+
+
+def trial_masks3d(count: int, layers: int = 8, size: int = 128, seed: int = 0) -> dict:
+    """``count`` 3-D trial prints, id ``<kind>_<index>`` -> (layers, size, size) uint8
+    layer masks (255 = full dose), the kinds in turn, each from its own seeded stream."""
+    out = {}
+    kinds = list(KINDS3D)
+    for i in range(count):
+        k = kinds[i % len(kinds)]
+        d = KINDS3D[k](np.random.default_rng([seed, i]), layers, size)
+        out[f"{k}_{i:03d}"] = (d * 255).astype(np.uint8)
+    return out
+
+
+# -------------------------------------------------------------------------- fitting
+def _bounds(params: Params, names):
+    spec = {p.name: p.bounds for p in DEPTH_PARAMS}
+    return np.array([spec.get(k, params.bounds.get(k)) for k in names], dtype=np.float64)
+
+
+def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_size_um: float,
+              free2d=(), steps: int = 120, temperatures=(0.15, 0.03), starts=STARTS_UM, device=None) -> dict:
+    """Fit the depth parameters (and the 2-D parameters named in ``free2d``) to voxel
+    prints. ``masks``: list of (L, H, W) uint8 layer masks; ``prints``: list of (L, H, W)
+    bool voxel prints. Returns a dict: values (the fitted parameters), objective (the
+    hard-threshold mean squared difference), seconds, starts (objective per start)."""
+    dev = torch.device(device) if device else default_device()
+    model = params.build()
+    names = ["att_length_um", "spread", *free2d]
+    B = _bounds(params, names)
+    Ms = [torch.from_numpy(np.asarray(m, np.float32) / 255.0).to(dev) for m in masks]
+    Ys = [torch.from_numpy(np.asarray(p, np.float32)).to(dev) for p in prints]
+    n_vox = sum(int(y.numel()) for y in Ys)
+    t0 = time.perf_counter()
+
+    def unpack(u):
+        x = torch.as_tensor(B[:, 0], dtype=u.dtype) + torch.sigmoid(u) * torch.as_tensor(B[:, 1] - B[:, 0], dtype=u.dtype)
+        depth = {"att_length_um": x[0:1], "spread": x[1:2]}
+        vals = dict(params.values)
+        vals.update({k: x[2 + i] for i, k in enumerate(free2d)})
+        return depth, model.theta({k: (v.reshape(1) if isinstance(v, torch.Tensor) else v) for k, v in vals.items()}, dev), x
+
+    def objective(u, temperature):
+        depth, theta, _ = unpack(u)
+        total = 0.0
+        for m, y in zip(Ms, Ys):
+            dose = layer_dose(model, m, theta, depth, layer_um, pixel_size_um)[0]
+            p = model.threshold.apply(dose, theta, temperature)
+            total = total + ((p.float() - y) ** 2).sum()
+        return total / n_vox
+
+    def logit(v, lo, hi):
+        f = min(max((v - lo) / (hi - lo), 1e-4), 1 - 1e-4)
+        return math.log(f / (1 - f))
+
+    results = []
+    for att0 in starts:
+        init = [logit(att0, *B[0]), logit(0.1, *B[1])] + [logit(float(params.values[k]), *B[2 + i])
+                                                          for i, k in enumerate(free2d)]
+        u = torch.tensor(init, dtype=torch.float32, requires_grad=True)
+        opt = torch.optim.Adam([u], lr=0.1)
+        for s in range(steps):
+            t = temperatures[0] * (temperatures[1] / temperatures[0]) ** (s / max(steps - 1, 1))
+            opt.zero_grad(set_to_none=True)
+            loss = objective(u, t)
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            hard = float(objective(u, None))
+        results.append((hard, u.detach().clone()))
+    best = min(results, key=lambda r: r[0])
+    with torch.no_grad():
+        _, _, x = unpack(best[1])
+    values = {k: float(x[i]) for i, k in enumerate(names)}
+    return dict(values=values, objective=best[0], starts=[r[0] for r in results], seconds=time.perf_counter() - t0)
+
+
+def voxel_prints(masks: list, params: Params, depth: dict, layer_um: float, pixel_size_um: float, device=None) -> list:
+    """Hard-threshold voxel prints of layer masks under a model and depth parameters."""
+    dev = torch.device(device) if device else default_device()
+    model = params.build()
+    theta = model.theta(params.values, dev)
+    out = []
+    with torch.no_grad():
+        for m in masks:
+            d = layer_dose(model, torch.from_numpy(np.asarray(m, np.float32) / 255.0).to(dev), theta, depth, layer_um,
+                           pixel_size_um)[0]
+            out.append((d >= theta["T"].reshape(-1)[0]).cpu().numpy())
+    return out
