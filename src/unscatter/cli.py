@@ -176,6 +176,25 @@ def register(batch_dir, out_dir, mode, level, min_score, skip_failed):
     click.echo(f"registered {len(rows)} prints: {n['ok']} ok, {n['empty']} empty, {n['failed']} failed -> {out_dir}")
 
 
+@main.command("register3d")
+@click.argument("batch_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@option(S.REGISTRATION, "level")
+@option(S.REGISTRATION, "skip_failed")
+def register3d(batch_dir, out_dir, level, skip_failed):
+    """Register the confocal z-stacks of a multi-layer batch to their layer masks (pose and
+    z offset) and threshold them into voxel prints (prints/<id>/NNN.png, qc.tsv, overlays)."""
+    from .imaging import RegistrationError, register_stacks
+
+    try:
+        rows = register_stacks(batch_dir, out_dir, level=level, skip_failed=skip_failed)
+    except RegistrationError as exc:
+        click.echo(f"error: {exc}", err=True)
+        sys.exit(3)
+    n = {s: sum(r["status"] == s for r in rows) for s in ("ok", "empty", "failed")}
+    click.echo(f"registered {len(rows)} z-stacks: {n['ok']} ok, {n['empty']} empty, {n['failed']} failed -> {out_dir}")
+
+
 # ------------------------------------------------------------------- calibrate
 def _bounds(ctx, param, value):
     out = {}

@@ -24,8 +24,9 @@ vignetting, background and noise, with no fiducial marks. For each print of a ba
 from .batch import MARGIN, RegistrationError, Settings, register_batch, threshold_print, warp_to_design
 from .flatfield import Corrected, correct_image, dense_level, fit_background
 from .pose import pose_of, project_similarity, transform_rms_px
+from .stack import register_stacks
 from .template import PrintTemplate, ncc
 
-__all__ = ["MARGIN", "RegistrationError", "Settings", "register_batch", "threshold_print", "warp_to_design", "Corrected",
+__all__ = ["MARGIN", "RegistrationError", "Settings", "register_batch", "register_stacks", "threshold_print", "warp_to_design", "Corrected",
            "correct_image", "dense_level", "fit_background", "pose_of", "project_similarity", "transform_rms_px",
            "PrintTemplate", "ncc"]

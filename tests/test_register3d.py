@@ -1,0 +1,76 @@
+"""Registration of confocal z-stacks to layer masks (unscatter.imaging.stack)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import tifffile
+from click.testing import CliRunner
+
+from unscatter.calibration3d import trial_masks3d
+from unscatter.cli import main
+from unscatter.imaging import register_stacks
+from unscatter.imaging.stack import axial_profile, fit_axial
+from unscatter.io import InputError, read_print, read_tsv, write_png
+from unscatter.lab import print_layers
+from unscatter.metrics import iou
+
+OVER = dict(printer=dict(pad_px=64), microscope=dict(image_size=[256, 256]))
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    root = tmp_path_factory.mktemp("stacks")
+    ms = {k: v for k, v in trial_masks3d(8, layers=6, size=128, seed=3).items() if k.startswith(("channel", "stairs"))}
+    for mid, m in ms.items():
+        for j, layer in enumerate(m):
+            write_png(root / "masks" / mid / f"{j:03d}.png", layer)
+    print_layers(root / "masks", root / "batch", overrides=OVER, progress=False)
+    return root, ms
+
+
+def test_fit_axial_finds_the_bottom():
+    z = np.arange(0, 200, 10.0)
+    area = np.array([1.0, 1.0, 0.5, 0.5])
+    prof = 3.0 * axial_profile(37.0, 6.0, z, area, 25.0) + 0.2
+    r = fit_axial(prof, z, area, 25.0)
+    assert r["bottom_um"] == pytest.approx(37.0, abs=1.0) and r["r2"] > 0.999
+
+
+def test_stacks_register_or_fail_never_silently_wrong(batch, tmp_path):
+    root, ms = batch
+    rows = register_stacks(root / "batch", tmp_path / "reg", skip_failed=True, progress=False)
+    truth_pose = {r["id"]: r for r in read_tsv(root / "batch.truth" / "transforms.tsv")}
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) >= 2
+    for r in ok:
+        L = len(ms[r["id"]])
+        truth = np.stack([read_print(root / "batch.truth" / "prints" / r["id"] / f"{j:03d}.png") for j in range(L)])
+        vox = np.stack([read_print(tmp_path / "reg" / r["id"] / f"{j:03d}.png") for j in range(L)])
+        assert iou(vox, truth) > 0.75, r["id"]
+        assert abs(float(r["bottom_um"]) + float(truth_pose[r["id"]]["z0_um"])) < 10.0, r["id"]  # within a slice
+        assert (tmp_path / "reg" / "overlays" / f"{r['id']}.png").is_file()
+    for r in rows:
+        if r["status"] == "failed":
+            assert r["reason"] and not (tmp_path / "reg" / r["id"]).exists()
+
+
+def test_bad_stack_batches_are_clear_errors(batch, tmp_path):
+    import shutil
+
+    root, ms = batch
+    b = tmp_path / "b"
+    shutil.copytree(root / "batch", b)
+    first = next(iter(ms))
+    (b / "masks" / first / "002.png").unlink()
+    with pytest.raises(InputError, match="002.png"):
+        register_stacks(b, tmp_path / "o1", progress=False)
+    shutil.rmtree(b)
+    shutil.copytree(root / "batch", b)
+    st = tifffile.imread(b / "images" / f"{first}.tif")
+    tifffile.imwrite(b / "images" / f"{first}.tif", st[:3], photometric="minisblack")  # too few slices for the depth
+    with pytest.raises(InputError, match="cover"):
+        register_stacks(b, tmp_path / "o2", progress=False)
+    (b / "images" / f"{first}.tif").unlink()
+    r = CliRunner().invoke(main, ["register3d", str(b), str(tmp_path / "o3")])
+    assert r.exit_code == 2 and "no z-stack" in r.output and not (tmp_path / "o3").exists()
