@@ -19,6 +19,7 @@ include: "workflow/rules/nets.smk"
 include: "workflow/rules/compensation.smk"
 include: "workflow/rules/benchmark.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/layers.smk"
 
 
 rule all:

@@ -74,3 +74,28 @@ def test_bad_stack_batches_are_clear_errors(batch, tmp_path):
     (b / "images" / f"{first}.tif").unlink()
     r = CliRunner().invoke(main, ["register3d", str(b), str(tmp_path / "o3")])
     assert r.exit_code == 2 and "no z-stack" in r.output and not (tmp_path / "o3").exists()
+
+
+def test_registered_stacks_calibrate_and_score(batch, tmp_path):
+    """The chain after registration: depth calibration on the voxel prints, and the 3-D
+    benchmark's scoring of registered prints against designs."""
+    import yaml
+
+    from unscatter.calibration3d import calibrate3d
+    from unscatter.compensation3d import load_depth, score3d_batch
+    from unscatter.model import default_params, save_params
+
+    root, ms = batch
+    register_stacks(root / "batch", tmp_path / "reg", skip_failed=True, progress=False)
+    save_params(tmp_path / "p.yaml", default_params(pixel_size_um=2.96).with_values(sigma_px=4.0))
+    r = calibrate3d(tmp_path / "reg", tmp_path / "p.yaml", tmp_path / "cal", steps=10)
+    depth = load_depth(tmp_path / "cal" / "depth.yaml")  # within its bounds, or this raises
+    assert depth["layer_um"] == 50.0 and r["prints"] >= 2 and 0 < r["fit_voxel_iou"] <= 1
+    assert yaml.safe_load((tmp_path / "cal" / "params.yaml").read_text())["depth_fit"]["free"] == ["sigma_px", "T"]
+    for mid, m in ms.items():
+        for j, layer in enumerate(m):
+            write_png(tmp_path / "designs" / mid / f"{j:03d}.png", layer > 0)
+    rows = score3d_batch(tmp_path / "reg", tmp_path / "designs", tmp_path / "scores")
+    assert {r["id"] for r in rows} == set(ms)
+    assert all(0.5 < r["iou"] <= 1 for r in rows if r["status"] == "ok")
+    assert (tmp_path / "scores" / "sections.png").is_file() and (tmp_path / "scores" / "metrics.tsv").is_file()

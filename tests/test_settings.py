@@ -50,6 +50,7 @@ def _commands(group: click.Group, prefix=()):
 STAGE_OF = {
     "masks trial": (S.TRIAL_MASKS, {}),
     "masks design": (S.TRIAL_MASKS, {}),
+    "masks trial3d": (S.LAYERS, {}),
     "lab print": (S.LAB, {"seed": None}),  # None: the lab config's seed
     "register": (S.REGISTRATION, {}),
     "calibrate": (S.CALIBRATION, {}),

@@ -163,6 +163,27 @@ def test_next_trial_masks_are_planned_after_the_diagnosis(tmp_path):
         tmp_path / "d.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)])])
 
 
+LAYERS_JOBS = [("benchmark3d_job", ""), ("benchmark3d_score", ""), ("calibrate3d", ""), ("compensate3d", ""),
+               ("register3d", "b3=benchmark"), ("register3d", "b3=trials"), ("trial_masks3d", ""),
+               ("virtual_lab3d", "b3=benchmark"), ("virtual_lab3d", "b3=trials")]
+
+
+def test_layers_run_plans_the_3d_stages(tmp_path):
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), layers={"run": True})
+    jobs = planned(configs=[cfg])
+    assert set(LAYERS_JOBS) <= set(jobs)
+    off = write_config(tmp_path / "d.yaml", results=str(tmp_path / "results"))
+    assert not set(LAYERS_JOBS) & set(planned(configs=[off]))
+
+
+def test_layers_run_needs_the_virtual_lab(tmp_path):
+    batch = fake_batch(tmp_path, "session1")
+    cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)],
+                       layers={"run": True})
+    proc = snakemake("--dry-run", configs=[cfg], check=False)
+    assert proc.returncode != 0 and "layers.run needs source: lab" in proc.stdout
+
+
 def test_slurm_profile_dry_run(tmp_path):
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"))
     out = snakemake("--dry-run", "--workflow-profile", "workflow/profiles/slurm", configs=[cfg]).stdout

@@ -166,3 +166,94 @@ def voxel_prints(masks: list, params: Params, depth: dict, layer_um: float, pixe
                            pixel_size_um)[0]
             out.append((d >= theta["T"].reshape(-1)[0]).cpu().numpy())
     return out
+
+
+# ---------------------------------------------------------------- from registration
+def load_voxel_prints(prints_dir) -> tuple[dict, dict, dict]:
+    """(layer masks, voxel prints, batch meta) of the usable prints of a z-stack
+    registration (``register_stacks``'s output): id -> (L, H, W) arrays; failed prints are
+    never read."""
+    from pathlib import Path
+
+    from .io import InputError, read_mask, read_print, read_tsv, read_yaml
+
+    prints_dir = Path(prints_dir)
+    meta = read_yaml(prints_dir / "batch.yaml")
+    masks, prints = {}, {}
+    for r in read_tsv(prints_dir / "qc.tsv"):
+        if r["status"] != "ok":
+            continue
+        mdir = (prints_dir / r["mask"]).resolve()
+        layers = sorted(mdir.glob("*.png"))
+        if not layers:
+            raise InputError(mdir, f"layer masks of print {r['id']!r} not found")
+        masks[r["id"]] = np.stack([read_mask(p) for p in layers])
+        files = [prints_dir / r["id"] / p.name for p in layers]
+        missing = [f for f in files if not f.is_file()]
+        if missing:
+            raise InputError(missing[0], "voxel print listed as ok in qc.tsv but missing")
+        prints[r["id"]] = np.stack([read_print(f) for f in files])
+    if not prints:
+        raise InputError(prints_dir / "qc.tsv", "no usable (ok) voxel prints")
+    return masks, prints, meta
+
+
+def calibrate3d(prints_dir, params_path, out_dir, free2d=("sigma_px", "T"), holdout: float = 1 / 3, seed: int = 0,
+                steps: int = 80) -> dict:
+    """Fit the depth parameters (and ``free2d``) to registered voxel prints, the 2-D model
+    from ``params_path``. A share ``holdout`` of the prints is kept out of the fit and
+    scored (voxel IoU, the fitted model against the measured print). Writes into
+    ``out_dir``: params.yaml (the 2-D model with the jointly fitted values), depth.yaml
+    (att_length_um, spread, layer_um), fit.tsv (per print: fit or held-out, voxel IoU) and
+    summary.yaml. Returns the summary."""
+    from pathlib import Path
+
+    from .io import InputError, output_dir, write_tsv, write_yaml
+    from .metrics import iou
+    from .model import load_params, save_params
+
+    masks, prints, meta = load_voxel_prints(prints_dir)
+    base = load_params(params_path)
+    px = float(meta.get("pixel_size_um") or base.pixel_size_um or 0)
+    dz = meta.get("layer_um")
+    if not px > 0 or not isinstance(dz, (int, float)):
+        raise InputError(Path(prints_dir) / "batch.yaml", "needs pixel_size_um and layer_um")
+    ids = sorted(prints)
+    rng = np.random.default_rng(seed)
+    order = list(rng.permutation(len(ids)))
+    n_hold = int(round(holdout * len(ids))) if len(ids) >= 3 else 0
+    held = {ids[i] for i in order[:n_hold]}
+    fit_ids = [k for k in ids if k not in held]
+    r = fit_depth([masks[k] for k in fit_ids], [prints[k] for k in fit_ids], base, float(dz), px, free2d=tuple(free2d),
+                  steps=steps)
+    v = r["values"]
+    params = base.with_values(**{k: v[k] for k in free2d})
+    depth = dict(att_length_um=v["att_length_um"], spread=v["spread"], layer_um=float(dz))
+    sims = voxel_prints([masks[k] for k in ids], params, depth, float(dz), px)
+    rows = [dict(id=k, use="held-out" if k in held else "fit", voxel_iou=round(iou(s, prints[k]), 5))
+            for k, s in zip(ids, sims)]
+    h = [row["voxel_iou"] for row in rows if row["use"] == "held-out"]
+    summary = dict(values=v, objective=r["objective"], starts=r["starts"], seconds=round(r["seconds"], 1),
+                   prints=len(ids), held_out=len(h), heldout_voxel_iou=float(np.mean(h)) if h else None,
+                   fit_voxel_iou=float(np.mean([row["voxel_iou"] for row in rows if row["use"] == "fit"])))
+    with output_dir(out_dir, command="calibrate3d", inputs=[prints_dir, params_path]) as tmp:
+        save_params(tmp / "params.yaml", params, depth_fit=dict(free=list(free2d), source=str(prints_dir)))
+        write_yaml(tmp / "depth.yaml", depth)
+        write_tsv(tmp / "fit.tsv", rows)
+        write_yaml(tmp / "summary.yaml", summary)
+    return summary
+
+
+def write_trial_masks3d(out_dir, count: int, layers: int, size: int, seed: int) -> list:
+    """The 3-D trial prints as ``out_dir/<id>/NNN.png`` (a new folder, or an earlier one of
+    these)."""
+    from pathlib import Path
+
+    from .io import output_dir, write_png
+
+    masks = trial_masks3d(count, layers=layers, size=size, seed=seed)
+    with output_dir(out_dir, command="masks trial3d") as tmp:
+        for mid, m in masks.items():
+            for j, layer in enumerate(m):
+                write_png(tmp / mid / f"{j:03d}.png", layer)
+    return [Path(out_dir) / mid for mid in masks]

@@ -131,18 +131,43 @@ def masks_design(out_dir, count, model, prints, pool, draws, seed, size, progres
                + (f" (random paper masks: {paper:.1f})" if paper is not None else "") + f" -> {out_dir}")
 
 
+@masks.command("trial3d")
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@option(S.LAYERS, "count")
+@option(S.LAYERS, "layers")
+@option(S.LAYERS, "size")
+@option(S.LAYERS, "seed")
+def masks_trial3d(out_dir, count, layers, size, seed):
+    """3-D trial prints (bridges, channels, towers, stairs): OUT_DIR/<id>/NNN.png, bottom first."""
+    from .calibration3d import write_trial_masks3d
+
+    paths = write_trial_masks3d(out_dir, count=count, layers=layers, size=size, seed=seed)
+    click.echo(f"wrote {len(paths)} 3-D trial prints of {layers} layers to {out_dir}")
+
+
 # ------------------------------------------------------------------------- lab
 @main.group(cls=_Group)
 def lab():
     """The virtual lab (printer + microscope)."""
 
 
+def _lab_options(fn):
+    """MASKS OUT_BATCH, --lab-config, --truth-dir and --seed of the lab's print commands."""
+    for deco in reversed((
+        click.argument("mask_dir", type=click.Path(exists=True, file_okay=False, path_type=Path)),
+        click.argument("out_batch", type=click.Path(file_okay=False, path_type=Path)),
+        click.option("--lab-config", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+                     help="Overrides of the lab's defaults (YAML)."),
+        click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path),
+                     help="Where the truth goes (default OUT_BATCH.truth)."),
+        option(S.LAB, "seed", default=None, help="Seed of the lab's randomness (default: the lab config's)."),
+    )):
+        fn = deco(fn)
+    return fn
+
+
 @lab.command("print")
-@click.argument("mask_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.argument("out_batch", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--lab-config", type=click.Path(exists=True, dir_okay=False, path_type=Path), help="Overrides of the lab's defaults (YAML).")
-@click.option("--truth-dir", type=click.Path(file_okay=False, path_type=Path), help="Where the truth goes (default OUT_BATCH.truth).")
-@option(S.LAB, "seed", default=None, help="Seed of the lab's randomness (default: the lab config's).")
+@_lab_options
 @click.option("--job", "job_tsv", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="A print job's job.tsv (columns id, exposure): print each mask at that factor of the nominal exposure.")
 def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
@@ -153,6 +178,17 @@ def lab_print(mask_dir, out_batch, lab_config, truth_dir, seed, job_tsv):
     rows = print_batch(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed, exposures=exposures,
                        inputs=[job_tsv] if job_tsv else ())
     click.echo(f"printed and imaged {len(rows)} masks into {out_batch}")
+
+
+@lab.command("print3d")
+@_lab_options
+def lab_print3d(mask_dir, out_batch, lab_config, truth_dir, seed):
+    """Print every multi-layer mask folder MASK_DIR/<id>/ (layer PNGs, bottom first) on the
+    virtual lab and image it as a confocal z-stack: a multi-layer batch."""
+    from .lab import print_layers
+
+    rows = print_layers(mask_dir, out_batch, lab_config=lab_config, truth_dir=truth_dir, seed=seed)
+    click.echo(f"printed and imaged {len(rows)} multi-layer prints into {out_batch}")
 
 
 # -------------------------------------------------------------------- register
@@ -246,6 +282,29 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
                f"{heldout} -> {out_dir / 'params.yaml'}")
     for w in p.info.get("warnings", []):
         click.echo(f"warning: {w}", err=True)
+
+
+@main.command("calibrate3d")
+@click.argument("prints_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True,
+              help="The calibrated 2-D model (params.yaml, or its calibration or diagnosis folder).")
+@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
+@click.option("--free", default=",".join(S.LAYERS.default.free), show_default=True,
+              help=S.LAYERS["free"].description + " Comma-separated; empty: none.")
+def calibrate3d_cmd(prints_dir, params_path, out_dir, free):
+    """Calibrate the depth parameters on registered voxel prints (PRINTS_DIR from `unscatter register3d`)."""
+    from .calibration3d import calibrate3d
+
+    names = [f.strip() for f in free.split(",") if f.strip()]
+    try:
+        S.LAYERS.check("free", names)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc), param_hint="--free") from None
+    r = calibrate3d(prints_dir, params_path, out_dir, free2d=tuple(names))
+    v = r["values"]
+    held = f", held-out voxel IoU {r['heldout_voxel_iou']:.4f}" if r["heldout_voxel_iou"] is not None else ""
+    click.echo(f"calibrated on {r['prints'] - r['held_out']} prints: att_length {v['att_length_um']:.1f} um, spread "
+               f"{v['spread']:.3f}" + "".join(f", {k} {v[k]:.4g}" for k in names) + f"{held} -> {out_dir}")
 
 
 # -------------------------------------------------------------------- simulate
@@ -519,6 +578,41 @@ def benchmark_score(prints_dir, designs_dir, out_dir):
     with output_dir(out_dir, command="benchmark score", inputs=[prints_dir, designs_dir]) as tmp:
         rows = score_measured(prints_dir, designs_dir, tmp)
     _summary_lines(rows)
+
+
+@main.group(cls=_Group)
+def benchmark3d():
+    """Compensated layer masks against identical ones at the best uniform dose."""
+
+
+@benchmark3d.command("job")
+@click.argument("designs", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("compensated", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True)
+@click.option("--depth", "depth_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True)
+def benchmark3d_job(designs, compensated, out_dir, params_path, depth_path):
+    """The 3-D benchmark's print job: <design>__ilt and <design>__identical layer masks."""
+    from .compensation3d import write_job3d
+
+    rows = write_job3d(designs, compensated, params_path, depth_path, out_dir)
+    click.echo(f"print job of {len(rows)} multi-layer prints -> {out_dir}")
+
+
+@benchmark3d.command("score")
+@click.argument("registered", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("designs", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
+def benchmark3d_score(registered, designs, out_dir):
+    """Score registered 3-D benchmark prints (from `unscatter register3d`) against the designs."""
+    from .compensation3d import score3d_batch
+
+    for r in score3d_batch(registered, designs, out_dir):
+        if r["status"] != "ok":
+            click.echo(f"{r['id']:<28} failed registration")
+            continue
+        click.echo(f"{r['id']:<28} IoU {r['iou']:.4f}  open channels {r['open_channels']:.2f}  overhang "
+                   f"{r['overhang_error_um']:.1f} um  wall {r['wall_error_um']:+.1f} um")
 
 
 @main.command("report")

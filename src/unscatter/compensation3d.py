@@ -181,20 +181,9 @@ def compensate3d_designs(designs, out_dir, params, depth_path, names=None, **set
     from .io import output_dir, write_png, write_tsv
 
     designs = Path(designs)
-    if any(designs.glob("*.png")):
-        found = {designs.name: designs}
-    else:
-        found = {p.name: p for p in sorted(designs.iterdir()) if p.is_dir() and not p.name.startswith(".")}
-    if names:
-        missing = sorted(set(names) - set(found))
-        if missing:
-            raise InputError(designs, f"no 3-D design(s) {', '.join(missing)} here")
-        found = {k: found[k] for k in names}
-    if not found:
-        raise InputError(designs, "no 3-D designs (folders of layer PNGs)")
+    loaded = _designs3d(designs, names)  # every design checked before the first optimisation
     depth = load_depth(depth_path)
     p = load_params(params)
-    loaded = {k: read_design3d(v) for k, v in found.items()}  # every design checked before the first optimisation
     rows = []
     with output_dir(out_dir, command="compensate3d", inputs=[designs, Path(params), Path(depth_path)]) as tmp:
         for name, d in loaded.items():
@@ -208,3 +197,122 @@ def compensate3d_designs(designs, out_dir, params, depth_path, names=None, **set
                      info["identical_best_dose"], info["identical_model_iou"], info["seconds"])
         write_tsv(tmp / "compensation3d.tsv", rows)
     return rows
+
+
+# ---------------------------------------------------------------------- benchmark
+METHODS3D = ("ilt", "identical")
+
+
+def _designs3d(designs, names=None) -> dict:
+    """name -> (L, H, W) bool of a folder of 3-D designs, or of one design's folder."""
+    designs = Path(designs)
+    if any(designs.glob("*.png")):
+        found = {designs.name: designs}
+    else:
+        found = {p.name: p for p in sorted(designs.iterdir()) if p.is_dir() and not p.name.startswith(".")}
+    if names:
+        missing = sorted(set(names) - set(found))
+        if missing:
+            raise InputError(designs, f"no 3-D design(s) {', '.join(missing)} here")
+        found = {k: found[k] for k in names}
+    if not found:
+        raise InputError(designs, "no 3-D designs (folders of layer PNGs)")
+    return {k: read_design3d(v) for k, v in found.items()}
+
+
+def write_job3d(designs, compensated, params, depth_path, out_dir, names=None) -> list[dict]:
+    """The print job of the 3-D benchmark: masks/<design>__ilt/ (the compensated layer
+    masks) and masks/<design>__identical/ (the design at the model's best uniform dose),
+    job.tsv and a batch.yaml to complete (layer_um from the depth file). ``names``: the
+    designs (default: every design compensated)."""
+    from .io import output_dir, write_png, write_tsv, write_yaml
+    from .settings import PAPER_PIXEL_SIZE_UM
+
+    if not names:  # the designs that were compensated
+        names = sorted(q.name for q in Path(compensated).iterdir() if q.is_dir() and not q.name.startswith("."))
+    ds = _designs3d(designs, names)
+    depth = load_depth(depth_path)
+    p = load_params(params)
+    px = float(p.pixel_size_um or PAPER_PIXEL_SIZE_UM)
+    rows = []
+    with output_dir(out_dir, command="benchmark3d job", inputs=[designs, compensated, params, depth_path]) as tmp:
+        for name, d in ds.items():
+            files = sorted((Path(compensated) / name).glob("*.png"))
+            if len(files) != len(d):
+                raise InputError(Path(compensated) / name, f"{len(files)} layer masks for a design of {len(d)} layers")
+            dose, model_iou = best_uniform_dose(d, p, depth, px)
+            for j, f in enumerate(files):
+                write_png(tmp / "masks" / f"{name}__ilt" / f"{j:03d}.png", read_mask(f))
+                write_png(tmp / "masks" / f"{name}__identical" / f"{j:03d}.png", (d[j] * round(255 * dose)).astype(np.uint8))
+            rows += [dict(id=f"{name}__ilt", design=name, method="ilt", grey=""),
+                     dict(id=f"{name}__identical", design=name, method="identical", grey=dose)]
+        write_tsv(tmp / "job.tsv", rows)
+        write_yaml(tmp / "batch.yaml", dict(pixel_size_um=px, exposure_s=20.0, max_intensity_mw_cm2=20.8, material="FILL IN",
+                                            notes="FILL IN: 3-D benchmark prints", layer_um=depth["layer_um"],
+                                            z_step_um=10.0))
+    return rows
+
+
+def score3d_prints(prints: dict, designs: dict, pixel_size_um: float, layer_um: float) -> list[dict]:
+    """Rows of the 3-D metrics: ``prints`` id '<design>__<method>' -> voxel print or None
+    (a print that failed registration)."""
+    from .metrics import score3d
+
+    rows = []
+    for pid, vox in prints.items():
+        name, _, method = pid.partition("__")
+        row = dict(id=pid, design=name, method=method, status="ok" if vox is not None else "failed")
+        if vox is not None:
+            row.update({k: round(float(v), 5) for k, v in score3d(vox, designs[name], pixel_size_um, layer_um).items()})
+        rows.append(row)
+    return rows
+
+
+def score3d_batch(registered, designs, out_dir, names=None) -> list[dict]:
+    """Score a registered 3-D benchmark batch (``register_stacks`` output) against the
+    designs: metrics.tsv and sections.png (xz and yz cross-sections through the middle of
+    each design, the design's outline in red) in ``out_dir``."""
+    from .io import output_dir, read_print, read_tsv, read_yaml, write_tsv
+
+    registered = Path(registered)
+    ds = _designs3d(designs, names)
+    meta = read_yaml(registered / "batch.yaml")
+    prints = {}
+    for r in read_tsv(registered / "qc.tsv"):
+        name = r["id"].partition("__")[0]
+        if name not in ds:
+            continue
+        prints[r["id"]] = (np.stack([read_print(registered / r["id"] / f"{j:03d}.png") for j in range(len(ds[name]))])
+                           if r["status"] == "ok" else None)
+    rows = score3d_prints(prints, ds, float(meta["pixel_size_um"]), float(meta["layer_um"]))
+    with output_dir(out_dir, command="benchmark3d score", inputs=[registered, designs]) as tmp:
+        write_tsv(tmp / "metrics.tsv", rows)
+        sections_figure(tmp / "sections.png", prints, ds)
+    return rows
+
+
+def sections_figure(path: Path, prints: dict, designs: dict) -> None:
+    """xz and yz cross-sections (top up) of every print through its design's middle, with
+    the design's outline."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ids = list(prints)
+    fig, axes = plt.subplots(len(ids), 2, figsize=(8, 1.6 * len(ids) + 0.4), squeeze=False)
+    for i, pid in enumerate(ids):
+        d = designs[pid.partition("__")[0]]
+        vox = prints[pid]
+        for k, (ax, cut) in enumerate(zip(axes[i], ("xz", "yz"))):
+            mid = d.shape[1 + k] // 2
+            dsec = d[:, mid, :] if cut == "xz" else d[:, :, mid]
+            img = np.zeros(dsec.shape) if vox is None else (vox[:, mid, :] if cut == "xz" else vox[:, :, mid])
+            ax.imshow(img[::-1], cmap="gray", aspect="auto", interpolation="nearest")
+            ax.contour(dsec[::-1].astype(float), levels=[0.5], colors="red", linewidths=0.8)
+            ax.set_title(f"{pid} {cut}" + (" (failed)" if vox is None else ""), fontsize=7)
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)

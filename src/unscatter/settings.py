@@ -388,9 +388,25 @@ BENCHMARK = Stage(
                   "the virtual lab prints the job.", nullable=True),
 )
 
+LAYERS = Stage(
+    "layers",
+    "Multi-layer (3-D) prints: 3-D trial prints, their z-stacks registered, the depth parameters calibrated, the "
+    "3-D designs compensated and benchmarked against identical layer masks at the best uniform dose.",
+    run=_bool(False, "Run the 3-D stages (results/layers/)."),
+    count=_int(12, "3-D trial prints (bridges, channels, towers, stairs).", lo=3),
+    layers=_int(8, "Layers of each 3-D trial print.", lo=2),
+    size=_int(160, "Side of the 3-D trial prints in DMD pixels.", lo=32),
+    seed=_seed("Seed of the 3-D trial prints.", default=3),
+    free=Setting("array", ["sigma_px", "T"], "2-D parameters fitted with the depth parameters (the rest come from the "
+                 "2-D model).", unique=True, items=_choice(None, ("sigma_px", "T"), "")),
+    designs=Setting("string", "data/designs3d", "Folder of 3-D designs (one folder of layer PNGs each).", min_length=1),
+    names=Setting("array", [], "3-D designs to use; empty - every one.", unique=True,
+                  items=Setting("string", None, "", min_length=1)),
+)
+
 # The config's layout: the workflow's own settings at the top level, then a section a stage.
 SECTIONS = (TRIAL_MASKS, LAB, REGISTRATION, CALIBRATION, DIAGNOSIS, DESIGNS, AUGMENTATION, TRAINING, COMPENSATION,
-            BENCHMARK)
+            BENCHMARK, LAYERS)
 _TOP = ("results", "source", "batches")  # before the sections; 'model' goes after diagnosis
 
 

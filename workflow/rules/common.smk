@@ -270,6 +270,11 @@ def all_input(wildcards):
     targets.append(f"{RESULTS}/report.html")
     if config["trial_masks"]["next"]:
         targets.append(f"{RESULTS}/next_trial_masks")
+    if config["layers"]["run"]:
+        if config["source"] != "lab":
+            raise WorkflowError("config: layers.run needs source: lab (measured multi-layer batches are not wired into "
+                                "the workflow yet; use unscatter register3d, calibrate3d, compensate3d by hand)")
+        targets.append(f"{RESULTS}/layers/benchmark/scores")
     return targets
 
 

@@ -12,8 +12,9 @@ batch.yaml with layer_um and z_step_um.
 2. **z offset.** Every slice is warped to mask coordinates; the axial profile (mean signal
    over the print's footprint, background subtracted) is fitted by the profile the
    layer masks predict: each layer's area seen through a Gaussian axial response
-   integrated over the layer, for a grid of the print's bottom position and the
-   response's width; a linear gain and offset are fitted at each.
+   integrated over the layer and falling off exponentially with depth (light lost on
+   the way in and out), for a grid of the print's bottom position, the response's width
+   and the fall-off; a linear gain and offset are fitted at each.
 3. **Voxel print.** Each layer is read at its centre depth (linear interpolation between
    slices) and thresholded at ``level`` of the stack's dense-polymer level (the 95th
    percentile of layer-centre signal over the masks' solid voxels).
@@ -42,6 +43,7 @@ from ..io import InputError, output_dir, read_batch_meta, read_mask, read_tsv, w
 log = logging.getLogger(__name__)
 
 AXIAL_SIGMAS_UM = (1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0, 28.0)
+FALLOFFS_UM = (float("inf"), 3000.0, 1500.0, 1000.0, 700.0, 500.0, 350.0, 250.0, 175.0)  # signal fall-off with depth
 MIN_AXIAL_R2 = 0.8
 
 
@@ -103,24 +105,28 @@ def axial_profile(bottom_um: float, sigma_um: float, z_um: np.ndarray, area: np.
 
 
 def fit_axial(profile: np.ndarray, z_um: np.ndarray, area: np.ndarray, layer_um: float) -> dict:
-    """Bottom position and axial width that explain the profile best (grid search, a
-    linear gain and offset at each point): bottom_um, axial_sigma_um, r2."""
+    """Bottom position, axial width and signal fall-off with depth that explain the
+    profile best (grid search, a linear gain and offset at each point): bottom_um,
+    axial_sigma_um, falloff_um (the signal falls as exp(-z / falloff_um) through the
+    stack; inf: it does not), r2."""
     best = None
     var = float(((profile - profile.mean()) ** 2).sum())
     bottoms = np.arange(z_um[0] - 2 * layer_um, z_um[-1] + 1e-9, max(0.5, (z_um[1] - z_um[0]) / 4))
-    for sig in AXIAL_SIGMAS_UM:
-        for b in bottoms:
-            q = axial_profile(b, sig, z_um, area, layer_um)
-            A = np.stack([q, np.ones_like(q)], 1)
-            coef, *_ = np.linalg.lstsq(A, profile, rcond=None)
-            if coef[0] <= 0:
-                continue
-            res = float(((A @ coef - profile) ** 2).sum())
-            if best is None or res < best[0]:
-                best = (res, float(b), float(sig))
+    for fall in FALLOFFS_UM:
+        dim = np.exp(-(z_um - z_um[0]) / fall)
+        for sig in AXIAL_SIGMAS_UM:
+            for b in bottoms:
+                q = axial_profile(b, sig, z_um, area, layer_um) * dim
+                A = np.stack([q, np.ones_like(q)], 1)
+                coef, *_ = np.linalg.lstsq(A, profile, rcond=None)
+                if coef[0] <= 0:
+                    continue
+                res = float(((A @ coef - profile) ** 2).sum())
+                if best is None or res < best[0]:
+                    best = (res, float(b), float(sig), float(fall))
     if best is None:
-        return dict(bottom_um=float("nan"), axial_sigma_um=float("nan"), r2=0.0)
-    return dict(bottom_um=best[1], axial_sigma_um=best[2], r2=1.0 - best[0] / var if var > 0 else 0.0)
+        return dict(bottom_um=float("nan"), axial_sigma_um=float("nan"), falloff_um=float("inf"), r2=0.0)
+    return dict(bottom_um=best[1], axial_sigma_um=best[2], falloff_um=best[3], r2=1.0 - best[0] / var if var > 0 else 0.0)
 
 
 def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = False, progress: bool = True,
@@ -162,7 +168,7 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             r2 = rows2[mid]
             row = dict(id=mid, status=r2["status"], reason=r2["reason"], layers=len(masks[mid]), slices=len(stacks[mid]),
                        rotation_deg=r2["rotation_deg"], scale=r2["scale"], shift_x=r2["shift_x"], shift_y=r2["shift_y"],
-                       score=r2["score"], bottom_um="", axial_sigma_um="", axial_r2="", solid_fraction="",
+                       score=r2["score"], bottom_um="", axial_sigma_um="", falloff_um="", axial_r2="", solid_fraction="",
                        mask=os.path.relpath((batch_dir / "masks" / mid).resolve(), Path(out_dir).resolve()))
             if r2["status"] != "ok":
                 row["reason"] = f"projection: {r2['reason']}" if r2["reason"] else row["reason"]
@@ -171,6 +177,7 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             M = np.array([[float(r2[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
             vox, info, sheet = _voxel_print(stacks[mid] - offset, masks[mid], M, layer_um, step, level)
             row.update(bottom_um=round(info["bottom_um"], 2), axial_sigma_um=info["axial_sigma_um"],
+                       falloff_um=info["falloff_um"],
                        axial_r2=round(info["r2"], 4), solid_fraction=round(float(vox.mean()), 5))
             reasons = []
             if not info["r2"] >= min_axial_r2:
@@ -216,6 +223,7 @@ def _voxel_print(stack: np.ndarray, layers: np.ndarray, M: np.ndarray, layer_um:
     k0 = np.clip(np.floor(centres).astype(int), 0, len(stack) - 2)
     f = np.clip(centres - k0, 0, 1)[:, None, None]
     at = np.nan_to_num((1 - f) * sig[k0] + f * sig[k0 + 1], nan=0.0)
+    at = at * np.exp(centres * step / info["falloff_um"])[:, None, None]  # undo the fall-off with depth
     dense = float(np.percentile(at[solid], 95)) if solid.any() else float(np.nanmax(at))
     vox = at >= level * dense
     # overlay: the layer-centre slices side by side, the layer masks' outlines in red
