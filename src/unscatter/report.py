@@ -152,6 +152,35 @@ def _params_table(page: Page, path: Path) -> None:
     page.table(rows, path)
 
 
+def _layers(page: Page, layers: Path) -> None:
+    """The multi-layer stages: z-stack registration, depth calibration, compensation,
+    and the printed benchmark."""
+    page.h(2, "7. Multi-layer (3-D) prints")
+    for b in ("trials", "benchmark"):
+        qc = layers / "prints" / b / "qc.tsv"
+        page.h(3, f"z-stacks registered: {b}")
+        rows = page.tsv(qc, ["id", "status", "reason", "rotation_deg", "scale", "bottom_um", "axial_sigma_um", "axial_r2"])
+        if rows:
+            page.p(f"{sum(r['status'] == 'ok' for r in rows)} of {len(rows)} z-stacks ok; the others failed QC and are "
+                   "never used.")
+    cal = layers / "calibration"
+    page.h(3, "Depth calibration")
+    if (cal / "summary.yaml").is_file():
+        sm = read_yaml(cal / "summary.yaml")
+        v = sm.get("values", {})
+        page.p("Fitted: " + ", ".join(f"{k} {_fmt(float(x))}" for k, x in v.items())
+               + f"; held-out voxel IoU {_fmt(sm.get('heldout_voxel_iou'))} on {sm.get('held_out')} prints "
+               f"(fit {_fmt(sm.get('fit_voxel_iou'))}).")
+        page.source(cal / "summary.yaml")
+    page.tsv(cal / "fit.tsv")
+    page.h(3, "Compensated layer masks (the model's prediction)")
+    page.tsv(layers / "compensated" / "compensation3d.tsv")
+    page.h(3, "Printed benchmark: compensated vs identical layer masks at the best uniform dose")
+    page.tsv(layers / "benchmark" / "scores" / "metrics.tsv")
+    page.image(layers / "benchmark" / "scores" / "sections.png",
+               "xz and yz cross-sections (top up) of the registered voxel prints; red: the design's outline.")
+
+
 def build_report(results_dir, out_html, title: str = "unscatter run report", benchmark_batches=(),
                  models: dict | None = None) -> Path:
     """Write the report of the run under ``results_dir`` to ``out_html``; returns its path.
@@ -242,9 +271,13 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
         page.tsv(bench / "simulated" / "summary.tsv")
         page.image(bench / "simulated" / "metrics_bars.png", "Mean metrics per mask, simulated prints.")
 
+    layers = results / "layers"
+    if layers.is_dir():
+        _layers(page, layers)
+
     runtimes = results / "benchmarks"
     if runtimes.is_dir():
-        page.h(2, "7. Run times")
+        page.h(2, "8. Run times")
         rows = []
         for f in sorted(runtimes.rglob("*.tsv")):
             r = read_tsv(f)

@@ -8,6 +8,7 @@ rule report:
         f"{RESULTS}/train/{MODEL}",
         lambda w: list(benchmark_masks().values()),
         benchmark_targets(),
+        lambda w: [f"{RESULTS}/layers/benchmark/scores"] if config["layers"]["run"] else [],
     output:
         f"{RESULTS}/report.html",
     log:

@@ -10,11 +10,13 @@ batch.yaml with layer_um and z_step_um.
    pose hypotheses, print template and QC), which gives the pose (rotation, scale, shift)
    shared by every slice.
 2. **z offset.** Every slice is warped to mask coordinates; the axial profile (mean signal
-   over the print's footprint, background subtracted) is fitted by the profile the
-   layer masks predict: each layer's area seen through a Gaussian axial response
-   integrated over the layer and falling off exponentially with depth (light lost on
-   the way in and out), for a grid of the print's bottom position, the response's width
-   and the fall-off; a linear gain and offset are fitted at each.
+   over the print's footprint, background subtracted) is fitted, for a grid of the
+   print's bottom position and the axial response's width (a Gaussian integrated over
+   each layer), with every layer's brightness free and non-negative: a print may differ
+   from its masks layer by layer (an overhang grown downward), but it spans exactly its
+   layers, so its bottom and top edges place it. The fall-off of the signal with depth
+   (light lost on the way in and out) comes from a fit with the masks' areas
+   (``model_r2`` says how well the masks alone explain the profile).
 3. **Voxel print.** Each layer is read at its centre depth (linear interpolation between
    slices) and thresholded at ``level`` of the stack's dense-polymer level (the 95th
    percentile of layer-centre signal over the masks' solid voxels).
@@ -44,7 +46,7 @@ log = logging.getLogger(__name__)
 
 AXIAL_SIGMAS_UM = (1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 15.0, 20.0, 28.0)
 FALLOFFS_UM = (float("inf"), 3000.0, 1500.0, 1000.0, 700.0, 500.0, 350.0, 250.0, 175.0)  # signal fall-off with depth
-MIN_AXIAL_R2 = 0.8
+MIN_AXIAL_R2 = 0.95  # of the free-layer fit
 
 
 def open_stack_batch(root) -> tuple:
@@ -125,8 +127,31 @@ def fit_axial(profile: np.ndarray, z_um: np.ndarray, area: np.ndarray, layer_um:
                 if best is None or res < best[0]:
                     best = (res, float(b), float(sig), float(fall))
     if best is None:
-        return dict(bottom_um=float("nan"), axial_sigma_um=float("nan"), falloff_um=float("inf"), r2=0.0)
-    return dict(bottom_um=best[1], axial_sigma_um=best[2], falloff_um=best[3], r2=1.0 - best[0] / var if var > 0 else 0.0)
+        return dict(bottom_um=float("nan"), axial_sigma_um=float("nan"), falloff_um=float("inf"), r2=0.0, model_r2=0.0)
+    out = dict(bottom_um=best[1], axial_sigma_um=best[2], falloff_um=best[3],
+               model_r2=1.0 - best[0] / var if var > 0 else 0.0)
+    out.update(_fit_free_layers(profile, z_um, len(area), layer_um, bottoms, var))
+    return out
+
+
+def _fit_free_layers(profile: np.ndarray, z_um: np.ndarray, layers: int, layer_um: float, bottoms, var: float) -> dict:
+    """The bottom position and axial width with every layer's brightness free (>= 0): the
+    print's own layers may differ from its masks (an overhang grown downward, a channel
+    closed, light lost with depth), but it still spans exactly its layers, so its
+    bottom and top edges place it. Non-negative least squares at each grid point."""
+    from scipy.optimize import nnls
+
+    best = None
+    for sig in AXIAL_SIGMAS_UM:
+        for b in bottoms:
+            lo = b + np.arange(layers) * layer_um
+            W = ndtr((lo[None] + layer_um - z_um[:, None]) / sig) - ndtr((lo[None] - z_um[:, None]) / sig)
+            A = np.hstack([W, np.ones((len(z_um), 1)), -np.ones((len(z_um), 1))])  # offset of either sign
+            coef, res = nnls(A, profile)
+            if best is None or res < best[0]:
+                best = (res, float(b), float(sig))
+    r2 = 1.0 - best[0] ** 2 / var if var > 0 else 0.0
+    return dict(bottom_um=best[1], axial_sigma_um=best[2], r2=r2)
 
 
 def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = False, progress: bool = True,
@@ -168,7 +193,8 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             r2 = rows2[mid]
             row = dict(id=mid, status=r2["status"], reason=r2["reason"], layers=len(masks[mid]), slices=len(stacks[mid]),
                        rotation_deg=r2["rotation_deg"], scale=r2["scale"], shift_x=r2["shift_x"], shift_y=r2["shift_y"],
-                       score=r2["score"], bottom_um="", axial_sigma_um="", falloff_um="", axial_r2="", solid_fraction="",
+                       score=r2["score"], bottom_um="", axial_sigma_um="", falloff_um="", axial_r2="", axial_model_r2="",
+                       solid_fraction="",
                        mask=os.path.relpath((batch_dir / "masks" / mid).resolve(), Path(out_dir).resolve()))
             if r2["status"] != "ok":
                 row["reason"] = f"projection: {r2['reason']}" if r2["reason"] else row["reason"]
@@ -177,7 +203,7 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             M = np.array([[float(r2[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
             vox, info, sheet = _voxel_print(stacks[mid] - offset, masks[mid], M, layer_um, step, level)
             row.update(bottom_um=round(info["bottom_um"], 2), axial_sigma_um=info["axial_sigma_um"],
-                       falloff_um=info["falloff_um"],
+                       falloff_um=info["falloff_um"], axial_model_r2=round(info["model_r2"], 4),
                        axial_r2=round(info["r2"], 4), solid_fraction=round(float(vox.mean()), 5))
             reasons = []
             if not info["r2"] >= min_axial_r2:
