@@ -383,9 +383,9 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
     (a Schur complement per feature). Without a bound on the offsets, a single block, disc
     or grating printed as one block has a scale that only its size sets, and the spread
     is large however small the image noise; with one, it is about the offset over the
-    feature's radius times the field's. Several features fix the
-    scale by where they lie, a Siemens star by its spokes (their edges fix its size, the
-    rim its scale).
+    feature's radius times the field's. Several features fix the scale by where they lie,
+    a Siemens star by its spokes (their edges fix its size, the rim its scale, as well as
+    the template places the rim: a star's scale can be 1 % off with a small spread).
     """
     n = T.shape[0]
     c = (n - 1) / 2
