@@ -109,7 +109,7 @@ def single_lab(a) -> None:
     write_trial_masks(out / "masks", a.count, seed=seed)
     print_batch(out / "masks", out / "batch", lab_config=a.lab_config, seed=seed, progress=False)
     t0 = time.perf_counter()
-    register_batch(out / "batch", out / "reg", skip_failed=True)
+    register_batch(out / "batch", out / "reg", skip_failed=True, threads=a.threads)
     dt = time.perf_counter() - t0
     rows = evaluate(out / "reg", out / "batch.truth")
     for r in rows:
@@ -134,7 +134,7 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.SeedSequence([seed, lab, what]).generate_state(1)[0])
 
 
-def run_lab(i: int, seed: int, prints: int, root: Path) -> tuple[dict, list[dict]]:
+def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2) -> tuple[dict, list[dict]]:
     """Draw lab ``i``, print test masks on it, register, score. Returns (lab, print rows)."""
     from unscatter.imaging import register_batch
     from unscatter.lab import print_batch, random_lab
@@ -150,7 +150,7 @@ def run_lab(i: int, seed: int, prints: int, root: Path) -> tuple[dict, list[dict
     print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 2), progress=False)
     t_print = time.perf_counter() - t0
     t0 = time.perf_counter()
-    register_batch(d / "batch", d / "reg", skip_failed=True, progress=False)
+    register_batch(d / "batch", d / "reg", skip_failed=True, progress=False, threads=threads)
     t_reg = time.perf_counter() - t0
     rows = evaluate(d / "reg", d / "batch.truth")
     for r in rows:
@@ -273,12 +273,12 @@ def random_labs(a) -> None:
     seed = a.seed if a.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
     out = a.out or Path("benchmarks/out/registration_labs")
     out.mkdir(parents=True, exist_ok=True)
-    cmd = f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed}"
+    cmd = f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed} --threads {a.threads}"
     print(f"seed {seed} (repeat with: {cmd})", flush=True)
     logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)  # failures are in the tables below
     labs, rows = [], []
     for i in range(a.labs):
-        lab, rr = run_lab(i, seed, a.prints, out)
+        lab, rr = run_lab(i, seed, a.prints, out, a.threads)
         labs.append(lab)
         rows += rr
         print(lab_line(lab, rr) + f" (printing {lab['print_s']:.1f} s)", flush=True)
@@ -302,6 +302,7 @@ def main():
     ap.add_argument("--lab-config", type=Path, help="overrides of the default lab (one lab)")
     ap.add_argument("--labs", type=int, default=0, help="number of random labs (0: one lab)")
     ap.add_argument("--prints", type=int, default=32, help="test prints per random lab")
+    ap.add_argument("--threads", type=int, default=2, help="registration threads (the workflow uses 2)")
     a = ap.parse_args()
     if a.labs:
         random_labs(a)

@@ -17,7 +17,7 @@ from ..io import InputError, open_batch, output_dir, read_mask, write_png, write
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, pose_distance, pose_of, project_similarity, refine,
-                   refine_ecc, self_similar_moves, to_design)
+                   merged_features, refine_ecc, self_similar_moves, size_spread, to_design)
 from .template import PrintTemplate, blurred_mask, fit_template, ncc
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,13 @@ class Settings:
     min_misfit_px: float = 3.0  # ... and at least this (px per edge px): a mean edge error no print of its mask has
     max_misfit_px: float = 8.0  # misfit (px per edge px) that fails without a batch to compare with
     max_pose_sd: float = 0.5  # design px: a pose known worse than this (1 sd, RMS over the field) fails
+    batch_range_min: int = 8  # determined prints needed to bound the poses of ambiguous ones by the batch's
+    batch_range_gaps: float = 3.0  # ... range, widened by this many mean gaps (batch_range)
+    max_size_sd: float = 1.5  # design px: a pose whose spread from its features' sizes is larger fails (a bound on a
+    # systematic error, not a noise level: at 1.5 px the print may be as far off as 'silently wrong' means)
+    size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
+    min_size_sd: float = 0.1  # ... and at least this with one (size_error)
+    size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -85,9 +92,14 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
         return starts, False
 
 
-def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple) -> PoseChoice:
+def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple,
+                rotation: tuple | None = None) -> PoseChoice:
     """Refine every start, add the moves under which the print maps onto itself, and keep
-    the pose the image prefers over every distinct rival (``pose`` module doc)."""
+    the pose the image prefers over every distinct rival (``pose`` module doc).
+
+    ``scale`` and ``rotation`` (default ``s.rotation_deg``) bound the poses that count: a
+    pose outside them is no rival."""
+    rotation = tuple(s.rotation_deg if rotation is None else rotation)
     half = PrintTemplate(design_px, MARGIN, factor=2)
     full = PrintTemplate(design_px, MARGIN)
     B_half = half.exposure(half.padded(mask), x)
@@ -104,7 +116,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
 
     def plausible(f):  # a pose outside the searched ranges is no rival: the prior excludes it
         p = pose_of(f[0].M, n, img.shape)
-        return (s.rotation_deg[0] - 1 <= p["rotation_deg"] <= s.rotation_deg[1] + 1
+        return (rotation[0] - 1 <= p["rotation_deg"] <= rotation[1] + 1
                 and scale[0] / 1.01 <= p["scale"] <= scale[1] * 1.01 and f[0].gain > 0)
 
     def dedupe(fits):
@@ -153,6 +165,47 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         if z < z_min:
             z_min, rival = z, f[0].M
     return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
+
+
+def determined(ch: PoseChoice, s: Settings) -> bool:
+    """A pose the print fixes on its own: converged, no rival close, a small spread."""
+    return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence and ch.fit.pose_sd <= s.max_pose_sd
+
+
+def batch_range(poses: list[dict], s: Settings):
+    """The rotation (deg) and scale range of a batch's determined prints, widened by
+    ``batch_range_gaps`` times the mean gap between neighbouring values (and at least
+    1 deg, 1 %): ((lo, hi), (lo, hi)), or None with fewer than ``batch_range_min`` prints.
+
+    One microscope images a batch; a print whose pose is ambiguous within the searched
+    ranges (a Siemens star whose spokes repeat within +-20 deg) is then chosen among the
+    poses in this range. With n prints drawn from a range, a new one falls beyond the
+    widened range with probability of the order 2 exp(-gaps) / (n + 1).
+    """
+    if len(poses) < s.batch_range_min:
+        return None
+    out = []
+    for v, floor in ((np.array([p["rotation_deg"] for p in poses]), 1.0), (np.log([p["scale"] for p in poses]), 0.01)):
+        m = max(floor, s.batch_range_gaps * (v.max() - v.min()) / (len(v) + 1))
+        out.append((float(v.min() - m), float(v.max() + m)))
+    (rlo, rhi), (slo, shi) = out
+    return (rlo, rhi), (float(np.exp(slo)), float(np.exp(shi)))
+
+
+def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
+    """The size of a print's features against the batch template's, (centre, spread) of the
+    edge offsets (e0, c2, s2; design px) fitted on prints whose pose their features' places
+    fix: for them the fitted offsets measure the template's size error (erosion or swelling,
+    anisotropic scattering: the batch's), for a print that is one feature they trade
+    against its scale. Median and 1.4826 MAD (c2 and s2 pooled), the spread at least
+    ``min_size_sd``; no offset and ``size_sd`` with fewer than ``size_min_prints`` prints."""
+    if len(fits) < s.size_min_prints:
+        return (0.0, 0.0, 0.0), (s.size_sd,) * 3
+    e = np.array([[f.edge, f.edge_c2, f.edge_s2] for f in fits])
+    centre = np.median(e, axis=0)
+    mad = 1.4826 * np.median(np.abs(e - centre), axis=0)  # robust: a partial print among them does not set it
+    aniso = float(max(s.min_size_sd, np.hypot(mad[1], mad[2]) / np.sqrt(2)))
+    return tuple(float(v) for v in centre), (float(max(s.min_size_sd, mad[0])), aniso, aniso)
 
 
 def implausible(corr: dict, s: Settings) -> dict:
@@ -361,14 +414,70 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, scales[mid][0]), todo)))
+    # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
+    # that the batch's determined prints make plausible
+    grid = design_px + 2 * MARGIN
+    known = [pose_of(ch.fit.M, grid, smooth[mid].shape) for mid, ch in choices.items() if determined(ch, s)]
+    limits = batch_range(known, s)
+    if limits is not None:
+        (rlo, rhi), (slo, shi) = limits
+        redo = [mid for mid, ch in choices.items() if ch.evidence < s.min_evidence]
+
+        def again(mid):
+            ch = choices[mid]
+            rot = (max(rlo, s.rotation_deg[0]), min(rhi, s.rotation_deg[1]))
+            sc = (max(slo, scales[mid][0][0]), min(shi, scales[mid][0][1]))
+            if rot[0] > rot[1] or sc[0] > sc[1]:
+                return ch
+            return choose_pose(masks[mid], smooth[mid], [ch.fit.M, ch.rival] + list(starts[mid][0]), x, s, design_px, sc, rot)
+
+        for mid, ch in zip(redo, pool.map(again, redo)):
+            log.info("%s: chosen again within the batch's poses (rotation %.1f..%.1f deg, scale %.3f..%.3f): evidence %.1f -> %.1f",
+                     mid, rlo, rhi, slo, shi, choices[mid].evidence, ch.evidence)
+            choices[mid] = ch
     p = dict(zip(PrintTemplate.NAMES, (float(v) for v in x)))
     full = PrintTemplate(design_px, MARGIN)
+
+    # 5c. how far a print's pose rests on the size of its features, and how well this
+    # batch's template predicts sizes: the edge offsets fitted on the prints whose features'
+    # places fix their pose (``size_error``)
+    def free_spread(mid):
+        T = predicted_print(full, full.exposure(full.padded(masks[mid]), x), x, choices[mid].fit)
+        return T, size_spread(T, s.mode)
+
+    spreads = dict(zip(todo, pool.map(free_spread, todo)))
+    placed = [choices[mid].fit for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
+    centre, edge_sd = size_error(placed, s)
+    log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
+             "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
+    edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
+
+    def held(mid):
+        """A print whose pose its features' sizes set: refitted with its edge offsets held
+        to the batch's (erosion and anisotropic scattering are the batch's), their spread
+        the batch's; not for a feature that joins parts of its mask (a grating printed as
+        one block), whose size the scatter between the parts sets, px off the template's
+        in our labs: its size counts as unknown."""
+        ch, T = choices[mid], spreads[mid][0]
+        if merged_features(T, full.padded(masks[mid])):
+            return ch.fit, T, None
+        if spreads[mid][1] <= s.max_pose_sd or len(placed) < s.size_min_prints:
+            return ch.fit, T, edge_sd
+        B = full.exposure(full.padded(masks[mid]), x)
+        f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior)
+        f.converged = f.converged and ch.fit.converged
+        return f, predicted_print(full, B, x, f), edge_sd
+
+    for mid, (f, T, sd) in zip(todo, pool.map(held, todo)):
+        f.size_sd = size_spread(T, s.mode, sd)
+        choices[mid].fit = f
+    del spreads
 
     # 6. warp, threshold, QC, write
     def finish(mid):
         k, mask = corr[mid], masks[mid]
         row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
-                   evidence="", pose_sd="", misfit="", dose="", blur="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
+                   evidence="", pose_sd="", size_sd="", misfit="", dose="", blur="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
@@ -390,7 +499,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         cov = coverage(M, mask, k.c.shape)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
                    evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
-                   pose_sd=round(ch.fit.pose_sd, 3), blur=round(ch.fit.blur, 3))
+                   pose_sd=round(ch.fit.pose_sd, 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3))
         for a in range(2):
             for b in range(3):
                 row[f"m{a}{b}"] = float(M[a, b])
@@ -411,6 +520,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"{rv['shift_y']:.1f}) fits almost as well (evidence {ch.evidence:.1f} < {s.min_evidence})")
         if not ch.fit.pose_sd <= s.max_pose_sd:
             reasons.append(f"pose not determined by the print: uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})")
+        if not ch.fit.size_sd <= s.max_size_sd:
+            reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
+                           f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
+                           f"(more than {s.max_size_sd})")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         row["solid_fraction"] = round(float(printed.mean()), 5)
@@ -434,7 +547,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             write_png(out_dir / f"{r['id']}.png", printed)
     bar.close()
     pool.shutdown()
-    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "misfit", "dose", "blur", "coverage",
+    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "misfit", "dose", "blur", "coverage",
             "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))

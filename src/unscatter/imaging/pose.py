@@ -24,6 +24,14 @@ pixels of context on every side) to image pixels. Registration of one print:
    the number of blocks that agree, so a decision needs the evidence spread over the
    print (a period broken at the print's ends, the parts that did not cure), not a
    single dust speck, and needs no noise model.
+5. **Spread** (``Fit.pose_sd``, ``size_spread``): how well the print fixes its pose,
+   from the noise and from how hard its parts pull against each other (a cluster-robust
+   estimate over tiles, ``_pose_sd``), and separately how far the pose rests on the
+   sizes of its features, which the template predicts worst: one block, or a grating
+   printed as one, has a scale that only its size sets.
+
+Refinement works on the window of the grid that the print can reach (the mask's
+scattered dose, widened by the blur and a band of background), not the whole grid.
 """
 
 from __future__ import annotations
@@ -173,6 +181,7 @@ class Fit:
     pose_sd: float  # standard deviation of the pose, RMS over the design field (design px)
     converged: bool
     iterations: int
+    size_sd: float = float("nan")  # pose spread from the print's size not being known (design px; set by the batch)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
         names = [n for n, _, _ in NUISANCE]
@@ -205,10 +214,13 @@ _BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad
            "edge_c2": (-4.0, 4.0), "edge_s2": (-4.0, 4.0)}
 
 
-def _prior(x) -> tuple[np.ndarray, np.ndarray]:
+def _prior(x, override: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Prior means and standard deviations of the nuisance numbers; ``override``: name ->
+    (mean, sd) in their place (the batch's edge offsets for a print that is one feature)."""
     batch = {"blur": max(float(x[10]), 0.3)}
-    mean = np.array([batch[n] if m is None else m for n, m, _ in NUISANCE])
-    return mean, np.array([sd for _, _, sd in NUISANCE])
+    override = override or {}
+    mean = np.array([override[n][0] if n in override else batch[n] if m is None else m for n, m, _ in NUISANCE])
+    return mean, np.array([override[n][1] if n in override else sd for n, _, sd in NUISANCE])
 
 
 def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
@@ -223,7 +235,7 @@ def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
 
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
-           tol: float = 0.01, spread: bool = True) -> Fit:
+           tol: float = 0.01, spread: bool = True, prior: dict | None = None) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors).
 
@@ -234,8 +246,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     gain * grad T, which is noise-free and equals the aligned image's gradient at the
     solution (image noise in the gradient would inflate the normal matrix and shorten
     every step). ``spread=False`` skips the pose's standard deviation (``pose_sd`` nan).
+    ``prior`` overrides nuisance priors (``_prior``).
     """
-    q0, qs = _prior(x)
+    q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
         M, gain, offset, q = fit_or_M.M, fit_or_M.gain, fit_or_M.offset, fit_or_M.q.copy()
     else:
@@ -247,17 +260,23 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     Ms = h3(M) @ S
     scale = float(np.sqrt(abs(np.linalg.det(Ms[:2, :2]))))
     src = cv2.GaussianBlur(img, (0, 0), 0.4 * scale) if scale > 1.2 else img
-    shape = tmpl.shape
-    n = shape[0]
+    n = tmpl.shape[0]
     c = (n - 1) / 2
-    g = np.arange(n, dtype=np.float32) - np.float32(c)
-    Xg, Yg = np.meshgrid(g, g)
     corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
+    # the grid's window that the print can reach: where the mask's scattered dose is, widened
+    # by the microscope's blur and a band of background for the offset
+    (r0, r1), (c0, c1) = _window(B, int(np.ceil((4 * max(float(x[10]), 1.0) + ROI_BAND_PX) / f)))
+    sl = (slice(r0, r1), slice(c0, c1))
+    shape = (r1 - r0, c1 - c0)
+    g = np.arange(n, dtype=np.float32) - np.float32(c)
+    Xg, Yg = np.meshgrid(g[c0:c1], g[r0:r1])
+    into = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])  # window -> grid
     sigma, it, move, H_data, norm, r, w, npose = float("nan"), 0, float("inf"), None, None, None, None, 0
     for it in range(1, iters + 1):
-        Iw = _warp(src, Ms[:2], shape)
+        Iw = _warp(src, (Ms @ into)[:2], shape)
         valid = np.isfinite(Iw)
         T, dq = print_template(tmpl, B, x, q)
+        T, dq = T[sl], [d[sl] for d in dq]
         if gain is None:  # first pass: gain and offset by least squares
             A = np.stack([T[valid], np.ones(int(valid.sum()), np.float32)], 1)
             gain, offset = (float(v) for v in np.linalg.lstsq(A, Iw[valid], rcond=None)[0])
@@ -272,13 +291,15 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             cols = [gx * Xg + gy * Yg, gy * Xg - gx * Yg, gx, gy]
         npose = len(cols)
         cols += [-T, -np.ones_like(T)] + [-gain * d for d in dq]
-        J = np.stack([col.ravel() for col in cols], 1)
-        norm = np.sqrt((J * J).sum(0)) + 1e-9
-        J /= norm
-        Jw = J * w.ravel()[:, None]
-        H_data = (Jw.T @ J).astype(np.float64) / sigma**2
+        J = np.empty((len(cols), T.size), np.float32)  # the Jacobian, transposed: one row a parameter
+        for i, col in enumerate(cols):
+            J[i] = col.ravel()
+        norm = np.sqrt(np.einsum("ij,ij->i", J, J, dtype=np.float64)) + 1e-9
+        J /= norm[:, None].astype(np.float32)
+        Jw = J * w.ravel()[None, :]
+        H_data = (Jw @ J.T).astype(np.float64) / sigma**2
         H = H_data.copy()
-        rhs = -(Jw.T @ r.ravel()).astype(np.float64) / sigma**2
+        rhs = -(Jw @ r.ravel()).astype(np.float64) / sigma**2
         kq = slice(npose + 2, None)
         H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
         rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
@@ -301,9 +322,23 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if move < tol:
             break
     converged = move < 0.25  # still moving by a quarter pixel a step: not settled (less is in the pose spread)
-    sd = _pose_sd(H_data, norm, npose, r * np.sqrt(w), sigma, mode, corners) * f if spread else float("nan")
+    sd = float("nan")
+    if spread:
+        sd = _pose_sd(H_data, norm, npose, J, w.ravel(), r.ravel(), sigma, shape, max(4, TILE_PX // f), mode, corners) * f
     M_full = (Ms @ np.linalg.inv(S))[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
+
+
+ROI_BAND_PX = 16  # design px of background around the print that refinement keeps
+
+
+def _window(B: np.ndarray, band: int):
+    """Rows and columns (start, stop) of the part of B above 2 % of its maximum, widened by
+    ``band``; the whole grid when B is empty."""
+    on = B > 0.02 * float(B.max()) if B.max() > 0 else np.ones(B.shape, bool)
+    rows, cols = np.flatnonzero(on.any(1)), np.flatnonzero(on.any(0))
+    n0, n1 = B.shape
+    return ((max(0, rows[0] - band), min(n0, rows[-1] + band + 1)), (max(0, cols[0] - band), min(n1, cols[-1] + band + 1)))
 
 
 def edge_shifted(T: np.ndarray, edge, factor: int = 1):
@@ -324,28 +359,96 @@ def edge_shifted(T: np.ndarray, edge, factor: int = 1):
     return T + e0 * basis[0] + c2 * basis[1] + s2 * basis[2], basis
 
 
-def _pose_sd(H, norm, npose, rw, sigma, mode, corners, max_lag: int = 12) -> float:
-    """Standard deviation of the pose (grid px, RMS over the field) that the print's data
-    alone allow: the pose block of the pseudo-inverse of the data's normal matrix (the
-    priors left out, so a pose that only a prior holds in place, such as the scale of a
-    single block whose edge offset is free, shows as undetermined), the nuisance numbers
-    marginalised.
+# The print's size is what a template predicts worst (the cure boundary of a dose near the
+# gel point, erosion, a fine grating that prints as one block). ``size_spread`` asks how
+# well the pose is fixed by where the features' edges lie when their sizes are known only
+# to a given standard deviation: edge positions off by EDGE_SD (design px), as one over
+# EDGE_CORR_PX of edge.
+EDGE_SD = 0.4
+EDGE_CORR_PX = 16.0
 
-    Residuals of a print are not independent: template misfit runs along edges. The
-    variance is inflated by the residual's integrated auto-correlation (the number of
-    pixels that act as one), measured on the weighted residual itself.
+
+def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
+    """The pose's spread (px of ``T``'s grid, RMS over the field) when each feature of the
+    predicted print ``T`` may be larger or smaller than predicted, more so across one
+    direction than another: per feature an edge offset e0 + c2 cos 2t + s2 sin 2t +
+    c4 cos 4t + s4 sin 4t (edge normal angle t; the first three as ``edge_shifted``, the
+    4t terms let a block's corners round off apart from its sides) of standard deviations
+    ``offset_sd`` (grid px; one number, or one each for e0, c2, s2, the 4t terms as c2 and
+    s2; None: unknown).
+
+    A geometric model: the predicted print's boundary (T at half its maximum), each
+    boundary pixel displaced along its normal by the pose and by its feature's offsets, a
+    feature being a 4-connected part of the predicted print. The offsets are marginalised
+    (a Schur complement per feature). Without a bound on the offsets, a single block, disc
+    or grating printed as one block has a scale that only its size sets, and the spread
+    is large however small the image noise; with one, it is about the offset over the
+    feature's radius times the field's. Several features fix the scale by where they lie,
+    a Siemens star by its spokes (their edges fix its size, the rim its scale, as well as
+    the template places the rim: a star's scale can be 1 % off with a small spread).
     """
-    if H is None:
+    n = T.shape[0]
+    c = (n - 1) / 2
+    corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
+    lvl = 0.5 * float(T.max())
+    gy, gx = np.gradient(T.astype(np.float64))
+    g = np.hypot(gx, gy)
+    edge = (np.abs(T - lvl) <= 0.5 * g) & (g > 1e-9)
+    ys, xs = np.nonzero(edge)
+    if len(xs) < 10:
         return float("inf")
-    C = np.linalg.pinv(H, rcond=1e-10, hermitian=True) / np.outer(norm, norm)
-    N = cv2.getOptimalDFTSize(rw.shape[0] + 2 * max_lag)  # padding enough for lags up to max_lag
-    F = np.fft.rfft2(rw - rw.mean(), s=(N, N))
-    ac = np.fft.fftshift(np.fft.irfft2(F * np.conj(F), s=(N, N)))
-    o = N // 2
-    ac = ac[o - max_lag : o + max_lag + 1, o - max_lag : o + max_lag + 1]
-    kappa = float(np.clip(ac.sum() / max(ac[max_lag, max_lag], 1e-30), 1.0, (2 * max_lag + 1) ** 2))
-    Cp = C[:npose, :npose] * kappa
-    # displacement of field points: d(x) = G(x) p; RMS over a grid of points of the field
+    nx, ny = -gx[edge] / g[edge], -gy[edge] / g[edge]  # outward: T falls off
+    X, Y = xs - c, ys - c
+    if mode == "affine":
+        P = np.stack([nx * X, nx * Y, ny * X, ny * Y, nx, ny], 1)
+    else:
+        P = np.stack([nx * X + ny * Y, ny * X - nx * Y, nx, ny], 1)
+    lab, count = ndimage.label(T >= lvl)
+    if count == 0:
+        return float("inf")
+    # boundary pixels just outside the print belong to the nearest feature
+    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+    k = lab[iy[ys, xs], ix[ys, xs]]
+    c2, s2 = nx * nx - ny * ny, 2 * nx * ny
+    Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
+    v = EDGE_SD**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
+    if offset_sd is None:
+        prior = np.zeros((5, 5))
+    else:
+        sd = np.broadcast_to(np.asarray(offset_sd, float), (3,))
+        sd = np.concatenate([sd, sd[1:]])  # cos 4t, sin 4t as the directional part
+        prior = np.diag(v / np.maximum(sd, 1e-6) ** 2)
+    S = P.T @ P
+    order = np.argsort(k, kind="stable")
+    bounds = np.flatnonzero(np.diff(k[order])) + 1
+    for idx in np.split(order, bounds):
+        Pk, Qk = P[idx], Q[idx]
+        Apq = Pk.T @ Qk
+        S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior, rcond=1e-8, hermitian=True) @ Apq.T
+    S = 0.5 * (S + S.T)
+    S[np.diag_indices_from(S)] += 1e-9 * np.trace(P.T @ P) / len(S)
+    return min(_field_rms(np.linalg.inv(S) * v, mode, corners), 1e6)
+
+
+def merged_features(T: np.ndarray, m: np.ndarray, fill: float = 1.5) -> bool:
+    """Whether the predicted print ``T`` joins parts of the padded mask ``m`` into one feature
+    that is ``fill`` times or more the exposed area within it (a fine grating printed as one
+    block, dots run together): the size of such a feature is set by the scatter between
+    its parts, which the template predicts worse than an edge's erosion."""
+    lab, count = ndimage.label(T >= 0.5 * float(T.max()))
+    if count == 0:
+        return False
+    area = np.bincount(lab.ravel(), minlength=count + 1)[1:]
+    exposed = np.bincount(lab.ravel(), weights=(m > 0).ravel(), minlength=count + 1)[1:]
+    return bool(np.any(area > fill * np.maximum(exposed, 1.0)))
+
+
+TILE_PX = 32  # design px: the tiles over which the pose spread lets template misfit correlate
+
+
+def _field_rms(Cp: np.ndarray, mode: str, corners: np.ndarray) -> float:
+    """RMS over a grid of field points of the displacement d(x) = G(x) p for a pose
+    covariance ``Cp``."""
     g = np.linspace(-1, 1, 5) * corners[0, 1] * -1
     X, Y = np.meshgrid(g, g)
     var = 0.0
@@ -356,6 +459,49 @@ def _pose_sd(H, norm, npose, rw, sigma, mode, corners, max_lag: int = 12) -> flo
             G = np.array([[x_, -y_, 1, 0], [y_, x_, 0, 1]])
         var += np.trace(G @ Cp @ G.T)
     return float(np.sqrt(max(var / X.size, 0.0)))
+
+
+def _pose_sd(H, norm, npose, J, w, r, sigma, shape, tile, mode, corners, max_lag: int = 12) -> float:
+    """Standard deviation of the pose (grid px, RMS over the field) that the print's data
+    alone allow, the nuisance numbers marginalised, and the priors left out (so a pose
+    that only a prior holds in place, such as the scale of a single block whose edge
+    offset is free, shows as undetermined). The larger of two estimates:
+
+    - **model-based**: the pose block of the pseudo-inverse of the data's normal matrix,
+      inflated by the residual's integrated auto-correlation up to ``max_lag`` px (the
+      number of pixels that act as one), measured on the weighted residual itself;
+    - **cluster-robust** (the sandwich C = H^-1 (sum_t g_t g_t^T) H^-1 with g_t the
+      gradient of the misfit from tile t of ``tile`` grid px): it measures how hard the
+      parts of the print pull against each other. A template that misplaces the edges of
+      a print (a block whose size it does not predict, parts of a partial print that cured
+      elsewhere) fits every tile badly in its own direction and the pose is where these
+      pulls balance; the sandwich sees the pulls, the noise-based estimate does not.
+      With few tiles it is low, hence the other estimate as a floor.
+    """
+    if H is None:
+        return float("inf")
+    Hi = np.linalg.pinv(H, rcond=1e-10, hermitian=True)
+    C = Hi / np.outer(norm, norm)
+    rw = (r * np.sqrt(w)).reshape(shape)
+    N = cv2.getOptimalDFTSize(max(rw.shape) + 2 * max_lag)  # padding enough for lags up to max_lag
+    F = np.fft.rfft2(rw - rw.mean(), s=(N, N))
+    ac = np.fft.fftshift(np.fft.irfft2(F * np.conj(F), s=(N, N)))
+    o = N // 2
+    ac = ac[o - max_lag : o + max_lag + 1, o - max_lag : o + max_lag + 1]
+    kappa = float(np.clip(ac.sum() / max(ac[max_lag, max_lag], 1e-30), 1.0, (2 * max_lag + 1) ** 2))
+    model = _field_rms(C[:npose, :npose] * kappa, mode, corners)
+    h, wd = shape
+    ty, tx = h // tile, wd // tile
+    k = J.shape[0]
+    wr = (w * r / sigma**2).astype(J.dtype)
+    g = (J * wr[None, :]).reshape(k, h, wd)[:, : ty * tile, : tx * tile].reshape(k, ty, tile, tx, tile).sum(axis=(2, 4))
+    g = g.reshape(k, -1).T
+    g = g[np.abs(g[:, :npose]).sum(1) > 0]  # tiles where the print has edges
+    if len(g) < 2:
+        return model
+    meat = (g.T @ g).astype(np.float64) * len(g) / (len(g) - 1)
+    Cs = (Hi @ meat @ Hi) / np.outer(norm, norm)
+    return max(model, _field_rms(Cs[:npose, :npose], mode, corners))
 
 
 # ------------------------------------------------------------------ 3. alternatives
