@@ -79,14 +79,30 @@ def _stairs(rng, L, n):
 KINDS3D = {"bridge": _bridge, "channel": _channel, "tower": _tower, "stairs": _stairs}
 
 
+def _markers(d: np.ndarray) -> np.ndarray:
+    """Registration marks through every layer, in three corners (an L, a bar, a square),
+    clear of the test structures (which keep an eighth of the field free at each side). The mean projection of a block with a
+    channel inside is one square whose size alone would set its scale; the marks fix the
+    pose by their places."""
+    L, n, _ = d.shape
+    a, w = max(8, n // 6), max(3, n // 24)
+    out = d.copy()
+    out[:, 1:1 + a, 1:1 + w] = True  # an L in the top left corner
+    out[:, 1:1 + w, 1:1 + a] = True
+    out[:, 1:1 + w, n - 1 - a // 2:n - 1] = True  # a short bar in the top right
+    out[:, n - 1 - 2 * w:n - 1, n - 1 - 2 * w:n - 1] = True  # a square in the bottom right
+    return out
+
+
 def trial_masks3d(count: int, layers: int = 8, size: int = 128, seed: int = 0) -> dict:
     """``count`` 3-D trial prints, id ``<kind>_<index>`` -> (layers, size, size) uint8
-    layer masks (255 = full dose), the kinds in turn, each from its own seeded stream."""
+    layer masks (255 = full dose), the kinds in turn, each from its own seeded stream,
+    each with registration marks in two corners (``_markers``)."""
     out = {}
     kinds = list(KINDS3D)
     for i in range(count):
         k = kinds[i % len(kinds)]
-        d = KINDS3D[k](np.random.default_rng([seed, i]), layers, size)
+        d = _markers(KINDS3D[k](np.random.default_rng([seed, i]), layers, size))
         out[f"{k}_{i:03d}"] = (d * 255).astype(np.uint8)
     return out
 
