@@ -4,7 +4,7 @@
 
 Compensates the 3-D designs of data/designs3d (stretched to ``--layers`` layers and
 ``--size`` pixels a side) through the multi-layer model with Eq. 1 at sigma 4 px and
-depth parameters att_length_um 80, spread 0.15, 50 um layers, and prints per design: the
+depth parameters att_length_um 80, diffusion_um 4, 50 um layers, and prints per design: the
 wall time, the model's 3-D IoU of the ILT masks and of the identical masks at the best
 uniform dose, and the open-channel fraction and overhang and wall thickness errors of
 both. Target (issue 14): a 40-layer 512 x 512 design in 60 s or less on 2 CPU cores.
@@ -42,7 +42,7 @@ def main(argv=None) -> None:
     from unscatter.model import default_params, layer_dose
 
     px, dz = 2.96, 50.0
-    depth = dict(att_length_um=80.0, spread=0.15, layer_um=dz)
+    depth = dict(att_length_um=80.0, diffusion_um=4.0, layer_um=dz)
     p = default_params(pixel_size_um=px).with_values(sigma_px=4.0, T=0.5)
     model = p.build()
     th = model.theta(p.values)

@@ -95,10 +95,10 @@ def main(argv=None) -> None:
             t_fit = time.perf_counter() - t0
             v = fit["values"]
             params = base.with_values(sigma_px=v["sigma_px"], T=v["T"])
-            depth = dict(att_length_um=v["att_length_um"], spread=v["spread"], layer_um=dz)
+            depth = dict(att_length_um=v["att_length_um"], diffusion_um=v["diffusion_um"], layer_um=dz)
             sims = voxel_prints([trials[k] for k in held_ids], params, depth, dz, px)
             held = np.mean([metrics.iou(s, truth[k]) for s, k in zip(sims, held_ids)])
-            print(f"  depth fit ({t_fit:.0f} s): att_length {v['att_length_um']:.1f} um, spread {v['spread']:.3f}, "
+            print(f"  depth fit ({t_fit:.0f} s): att_length {v['att_length_um']:.1f} um, diffusion {v['diffusion_um']:.3g} um, "
                   f"sigma {v['sigma_px']:.2f} px (lab {cfg['printer']['kernel']['sigma_um'] / px:.2f}), T {v['T']:.3f}; "
                   f"held-out voxel IoU {held:.4f}; objective {fit['objective']:.5f} "
                   f"(starting at 10 um, no depth reach: {flat['objective']:.5f})", flush=True)

@@ -27,12 +27,12 @@ def test_trial_masks3d_are_seeded_and_of_every_kind():
 def test_fit_depth_recovers_the_attenuation_length():
     p = default_params(pixel_size_um=PX).with_values(sigma_px=2.0, T=0.5)
     masks = [m for k, m in trial_masks3d(8, layers=4, size=40, seed=1).items() if k.split("_")[0] in ("bridge", "channel")]
-    truth = dict(att_length_um=60.0, spread=0.1)
+    truth = dict(att_length_um=60.0, diffusion_um=2.0)
     prints = voxel_prints(masks, p, truth, DZ, PX)
     r = fit_depth(masks, prints, p, DZ, PX, steps=50, starts=(100.0,))
     assert r["values"]["att_length_um"] == pytest.approx(60.0, rel=0.25)
-    fitted = voxel_prints(masks, p, dict(att_length_um=r["values"]["att_length_um"], spread=r["values"]["spread"]), DZ, PX)
+    fitted = voxel_prints(masks, p, dict(att_length_um=r["values"]["att_length_um"], diffusion_um=r["values"]["diffusion_um"]), DZ, PX)
     assert np.mean([iou(a, b) for a, b in zip(fitted, prints)]) > 0.98
     # a model in which light reaches no layer below fits clearly worse
-    shallow = voxel_prints(masks, p, dict(att_length_um=10.0, spread=0.0), DZ, PX)
+    shallow = voxel_prints(masks, p, dict(att_length_um=10.0, diffusion_um=0.0), DZ, PX)
     assert np.mean([iou(a, b) for a, b in zip(shallow, prints)]) < 0.97

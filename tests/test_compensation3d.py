@@ -16,7 +16,7 @@ from unscatter.model import default_params, layer_dose, save_params
 
 torch.set_num_threads(1)
 PX, DZ = 2.96, 50.0
-DEPTH = dict(att_length_um=80.0, spread=0.15, layer_um=DZ)
+DEPTH = dict(att_length_um=80.0, diffusion_um=4.0, layer_um=DZ)
 
 
 def bridge(L=6, n=64):
@@ -101,8 +101,8 @@ def test_depth_file_is_checked(tmp_path):
     f = tmp_path / "depth.yaml"
     f.write_text(yaml.safe_dump(DEPTH))
     assert load_depth(f) == DEPTH
-    f.write_text(yaml.safe_dump(dict(DEPTH, spread=7)))
-    with pytest.raises(InputError, match="spread"):
+    f.write_text(yaml.safe_dump(dict(DEPTH, diffusion_um=70)))
+    with pytest.raises(InputError, match="diffusion_um"):
         load_depth(f)
     f.write_text(yaml.safe_dump(dict(DEPTH, att_lenght_um=3)))
     with pytest.raises(InputError, match="unknown"):

@@ -33,19 +33,19 @@ def test_one_layer_is_the_2d_model(effects):
     m = get_model(p.model)
     th = m.theta(values)
     masks = masks_to_tensor(_masks(1))
-    d3 = layer_dose(m, masks, th, {"att_length_um": 50.0, "spread": 0.3}, DZ, PX)
+    d3 = layer_dose(m, masks, th, {"att_length_um": 50.0, "diffusion_um": 8.0}, DZ, PX)
     d2 = m.dose(masks, th)
     assert d3.shape == d2.shape
     assert torch.allclose(d3, d2, atol=1e-6, rtol=1e-5)
-    assert torch.equal(layer_prints(m, masks, th, {"att_length_um": 50.0, "spread": 0.3}, DZ, PX), m.prints(masks, th))
+    assert torch.equal(layer_prints(m, masks, th, {"att_length_um": 50.0, "diffusion_um": 8.0}, DZ, PX), m.prints(masks, th))
 
 
-def test_without_spread_each_layer_is_an_attenuated_sum_of_2d_doses():
+def test_without_diffusion_each_layer_is_an_attenuated_sum_of_2d_doses():
     m = get_model("eq1")
     th = m.theta(dict(default_params().values, sigma_px=2.0))
     masks = masks_to_tensor(_masks(4, seed=1))
     att = 40.0
-    d3 = layer_dose(m, masks, th, {"att_length_um": att, "spread": 0.0}, DZ, PX)[0]
+    d3 = layer_dose(m, masks, th, {"att_length_um": att, "diffusion_um": 0.0}, DZ, PX)[0]
     d2 = m.dose(masks, th)[0]
     for j in range(4):
         want = sum(math.exp(-k * DZ / att) * d2[j + k] for k in range(4 - j))
@@ -57,7 +57,7 @@ def test_uniform_exposure_is_a_geometric_series():
     th = m.theta(dict(default_params().values, sigma_px=1.5))
     L, att = 6, 60.0
     masks = torch.ones(L, 96, 96)
-    d = layer_dose(m, masks, th, {"att_length_um": att, "spread": 0.2}, DZ, PX)[0]
+    d = layer_dose(m, masks, th, {"att_length_um": att, "diffusion_um": 4.0}, DZ, PX)[0]
     q = math.exp(-DZ / att)
     for j in range(L):
         assert float(d[j, 48, 48]) == pytest.approx((1 - q ** (L - j)) / (1 - q), rel=1e-4)
@@ -65,18 +65,18 @@ def test_uniform_exposure_is_a_geometric_series():
 
 def test_depth_widens_the_kernel_as_stated():
     m = get_model("eq1")
-    sigma0, spread, att, L = 2.0, 0.2, 80.0, 3
+    sigma0, diffusion, att, L = 2.0, 6.0, 80.0, 3
     th = m.theta(dict(default_params().values, sigma_px=sigma0))
     masks = torch.zeros(L, 129, 129)
     masks[L - 1, 64, 64] = 1.0  # a point of light in the top layer only
-    d = layer_dose(m, masks, th, {"att_length_um": att, "spread": spread}, DZ, PX)[0].double()
+    d = layer_dose(m, masks, th, {"att_length_um": att, "diffusion_um": diffusion}, DZ, PX)[0].double()
     ax = torch.arange(129, dtype=torch.float64) - 64
     for k in range(L):
         j = L - 1 - k
         total = float(d[j].sum())
         assert total == pytest.approx(math.exp(-k * DZ / att), rel=1e-4)
         var = float((d[j].sum(0) * ax**2).sum()) / total
-        assert var == pytest.approx(sigma0**2 + (spread * k * DZ / PX) ** 2, rel=0.01), k
+        assert var == pytest.approx(sigma0**2 + diffusion * k * DZ / PX**2, rel=0.01), k
 
 
 def test_gradients_of_the_depth_parameters_match_finite_differences():
@@ -85,14 +85,14 @@ def test_gradients_of_the_depth_parameters_match_finite_differences():
     masks = masks_to_tensor(_masks(3, n=48, seed=2))
     target = torch.rand(3, 48, 48, generator=torch.Generator().manual_seed(0))
 
-    def loss(att, spread):
-        p = layer_prints(m, masks, th, {"att_length_um": att, "spread": spread}, DZ, PX, temperature=0.2)
+    def loss(att, diffusion):
+        p = layer_prints(m, masks, th, {"att_length_um": att, "diffusion_um": diffusion}, DZ, PX, temperature=0.2)
         return ((p[0] - target) ** 2).mean()
 
     att = torch.tensor([60.0], requires_grad=True)
-    spread = torch.tensor([0.3], requires_grad=True)
+    spread = torch.tensor([8.0], requires_grad=True)
     loss(att, spread).backward()
-    for t, h, g in ((att, 0.5, att.grad), (spread, 0.01, spread.grad)):
+    for t, h, g in ((att, 0.5, att.grad), (spread, 0.2, spread.grad)):
         with torch.no_grad():
             base = t.detach().clone()
             up = loss(base + h if t is att else att.detach(), spread.detach() if t is att else base + h)
@@ -102,12 +102,12 @@ def test_gradients_of_the_depth_parameters_match_finite_differences():
 
 
 def test_depth_parameters_have_bounds_and_batch():
-    assert {p.name for p in DEPTH_PARAMS} == {"att_length_um", "spread"}
+    assert {p.name for p in DEPTH_PARAMS} == {"att_length_um", "diffusion_um"}
     assert all(p.bounds[0] <= p.default <= p.bounds[1] for p in DEPTH_PARAMS)
     m = get_model("eq1")
     th = m.theta({**default_params().values, "sigma_px": [1.5, 3.0]})
-    d = layer_dose(m, masks_to_tensor(_masks(3)), th, {"att_length_um": [30.0, 300.0], "spread": 0.1}, DZ, PX)
+    d = layer_dose(m, masks_to_tensor(_masks(3)), th, {"att_length_um": [30.0, 300.0], "diffusion_um": 2.0}, DZ, PX)
     assert d.shape == (2, 3, 64, 64)
     one = layer_dose(m, masks_to_tensor(_masks(3)), m.theta({**default_params().values, "sigma_px": 3.0}),
-                     {"att_length_um": 300.0, "spread": 0.1}, DZ, PX)
+                     {"att_length_um": 300.0, "diffusion_um": 2.0}, DZ, PX)
     assert torch.allclose(d[1], one[0], atol=1e-5)

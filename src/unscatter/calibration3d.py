@@ -1,7 +1,7 @@
 """Calibration of the multi-layer model's depth parameters from 3-D trial prints.
 
 The 2-D parameters (Eq. 1, effects) come from the 2-D calibration; here the depth
-parameters (``model.DEPTH_PARAMS``: attenuation length, depth spread), and optionally
+parameters (``model.DEPTH_PARAMS``: attenuation length, depth diffusion), and optionally
 some 2-D parameters jointly (e.g. T, which a multi-layer print's accumulated dose tests
 differently from a single layer), are fitted to voxel prints (layer masks and the cured
 voxels of each layer, in mask coordinates).
@@ -121,7 +121,7 @@ def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_
     hard-threshold mean squared difference), seconds, starts (objective per start)."""
     dev = torch.device(device) if device else default_device()
     model = params.build()
-    names = ["att_length_um", "spread", *free2d]
+    names = ["att_length_um", "diffusion_um", *free2d]
     B = _bounds(params, names)
     Ms = [torch.from_numpy(np.asarray(m, np.float32) / 255.0).to(dev) for m in masks]
     Ys = [torch.from_numpy(np.asarray(p, np.float32)).to(dev) for p in prints]
@@ -130,7 +130,7 @@ def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_
 
     def unpack(u):
         x = torch.as_tensor(B[:, 0], dtype=u.dtype) + torch.sigmoid(u) * torch.as_tensor(B[:, 1] - B[:, 0], dtype=u.dtype)
-        depth = {"att_length_um": x[0:1], "spread": x[1:2]}
+        depth = {"att_length_um": x[0:1], "diffusion_um": x[1:2]}
         vals = dict(params.values)
         vals.update({k: x[2 + i] for i, k in enumerate(free2d)})
         return depth, model.theta({k: (v.reshape(1) if isinstance(v, torch.Tensor) else v) for k, v in vals.items()}, dev), x
@@ -150,7 +150,7 @@ def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_
 
     results = []
     for att0 in starts:
-        init = [logit(att0, *B[0]), logit(0.1, *B[1])] + [logit(float(params.values[k]), *B[2 + i])
+        init = [logit(att0, *B[0]), logit(2.0, *B[1])] + [logit(float(params.values[k]), *B[2 + i])
                                                           for i, k in enumerate(free2d)]
         u = torch.tensor(init, dtype=torch.float32, requires_grad=True)
         opt = torch.optim.Adam([u], lr=0.1)
@@ -220,7 +220,7 @@ def calibrate3d(prints_dir, params_path, out_dir, free2d=("sigma_px", "T"), hold
     from ``params_path``. A share ``holdout`` of the prints is kept out of the fit and
     scored (voxel IoU, the fitted model against the measured print). Writes into
     ``out_dir``: params.yaml (the 2-D model with the jointly fitted values), depth.yaml
-    (att_length_um, spread, layer_um), fit.tsv (per print: fit or held-out, voxel IoU) and
+    (att_length_um, diffusion_um, layer_um), fit.tsv (per print: fit or held-out, voxel IoU) and
     summary.yaml. Returns the summary."""
     from pathlib import Path
 
@@ -244,7 +244,7 @@ def calibrate3d(prints_dir, params_path, out_dir, free2d=("sigma_px", "T"), hold
                   steps=steps)
     v = r["values"]
     params = base.with_values(**{k: v[k] for k in free2d})
-    depth = dict(att_length_um=v["att_length_um"], spread=v["spread"], layer_um=float(dz))
+    depth = dict(att_length_um=v["att_length_um"], diffusion_um=v["diffusion_um"], layer_um=float(dz))
     sims = voxel_prints([masks[k] for k in ids], params, depth, float(dz), px)
     rows = [dict(id=k, use="held-out" if k in held else "fit", voxel_iou=round(iou(s, prints[k]), 5))
             for k, s in zip(ids, sims)]

@@ -303,8 +303,8 @@ def calibrate3d_cmd(prints_dir, params_path, out_dir, free):
     r = calibrate3d(prints_dir, params_path, out_dir, free2d=tuple(names))
     v = r["values"]
     held = f", held-out voxel IoU {r['heldout_voxel_iou']:.4f}" if r["heldout_voxel_iou"] is not None else ""
-    click.echo(f"calibrated on {r['prints'] - r['held_out']} prints: att_length {v['att_length_um']:.1f} um, spread "
-               f"{v['spread']:.3f}" + "".join(f", {k} {v[k]:.4g}" for k in names) + f"{held} -> {out_dir}")
+    click.echo(f"calibrated on {r['prints'] - r['held_out']} prints: att_length {v['att_length_um']:.1f} um, diffusion "
+               f"{v['diffusion_um']:.3g} um" + "".join(f", {k} {v[k]:.4g}" for k in names) + f"{held} -> {out_dir}")
 
 
 # -------------------------------------------------------------------- simulate

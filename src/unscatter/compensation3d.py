@@ -12,7 +12,7 @@ The baseline is the identical layer masks (the design itself) at the best unifor
 the grey level that maximises the model's 3-D IoU (``best_uniform_dose``).
 
 The depth parameters (``model.DEPTH_PARAMS``) are read from a depth file (YAML:
-att_length_um, spread, layer_um), written by a 3-D calibration or by hand.
+att_length_um, diffusion_um, layer_um), written by a 3-D calibration or by hand.
 """
 
 from __future__ import annotations
@@ -50,11 +50,11 @@ UNIFORM_DOSES = tuple(np.round(np.linspace(0.3, 1.0, 15), 3))
 
 
 def load_depth(path) -> dict:
-    """att_length_um, spread and layer_um from a depth file, each checked against its
+    """att_length_um, diffusion_um and layer_um from a depth file, each checked against its
     bounds (InputError naming the file)."""
     d = read_yaml(path)
     if not isinstance(d, dict):
-        raise InputError(path, "a depth file is a mapping: att_length_um, spread, layer_um")
+        raise InputError(path, "a depth file is a mapping: att_length_um, diffusion_um, layer_um")
     out = {}
     for spec in DEPTH_PARAMS:
         v = d.get(spec.name)
@@ -67,7 +67,7 @@ def load_depth(path) -> dict:
     out["layer_um"] = float(lu)
     unknown = sorted(set(d) - set(out))
     if unknown:
-        raise InputError(path, f"unknown key(s) {', '.join(unknown)}; a depth file has att_length_um, spread, layer_um")
+        raise InputError(path, f"unknown key(s) {', '.join(unknown)}; a depth file has att_length_um, diffusion_um, layer_um")
     return out
 
 

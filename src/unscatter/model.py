@@ -1203,10 +1203,10 @@ def simulate(params, masks, device=None, batch: int = 8, temperature: float | No
 DEPTH_PARAMS = (
     ParamSpec("att_length_um", 300.0, (10.0, 5000.0), "um",
               "attenuation length of the light in the material (Beer-Lambert: exp(-depth / att_length_um))"),
-    ParamSpec("spread", 0.05, (0.0, 1.0), "um per um",
-              "growth of the lateral scatter with depth: extra Gaussian sd = spread * depth"),
+    ParamSpec("diffusion_um", 2.0, (0.0, 50.0), "um^2 per um",
+              "lateral scatter grows with depth like diffusion: extra Gaussian variance = diffusion_um * depth"),
 )
-DEPTH_CUTOFF = 1e-4  # layers deeper than where exp(-depth / att_length) falls below this get no light
+DEPTH_CUTOFF = 1e-4  # the padding covers the scatter down to where exp(-depth / att_length) is this small
 
 
 def depth_defaults() -> dict:
@@ -1226,40 +1226,41 @@ def layer_dose(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um:
     """(P, L, H, W) accumulated dose of each layer of a multi-layer print.
 
     ``layers``: (L, H, W) layer masks in [0, 1] (or uint8), bottom first; ``theta``: the
-    2-D model's parameters (P sets); ``depth``: ``att_length_um`` and ``spread`` (floats
-    or (P,) tensors, ``DEPTH_PARAMS``); ``layer_um``: layer thickness; ``pixel_size_um``:
-    the DMD pixel at the sample; ``scale``: design pixels per grid pixel (a coarse grid,
-    as ``PrinterModel.dose`` takes it).
+    2-D model's parameters (P sets); ``depth``: ``att_length_um`` and ``diffusion_um``
+    (floats or (P,) tensors, ``DEPTH_PARAMS``); ``layer_um``: layer thickness;
+    ``pixel_size_um``: the DMD pixel at the sample; ``scale``: design pixels per grid
+    pixel (a coarse grid, as ``PrinterModel.dose`` takes it).
 
     Layer j gets, from the exposure of each layer l >= j at depth d = (l - j) layer_um,
-    exp(-d / att_length_um) x [2-D kernel * Gaussian(sd = spread d / pixel_size_um)] of
-    that layer's exposure (field x dose response x mask); the 2-D model's dose terms and
-    threshold then act on the sum. All exposures are Fourier transformed once; every
-    depth's transfer function is applied to the spectra of all layers at once, so the cost
-    is 2 L FFTs and L x (layers reached) multiplications.
+    exp(-d / att_length_um) x [2-D kernel * Gaussian(variance = diffusion_um d)] of that
+    layer's exposure (field x dose response x mask); the 2-D model's dose terms and
+    threshold then act on the sum. Attenuation and the depth Gaussian both multiply by the
+    same factor q(f) per layer of depth, so in Fourier space the sum over the layers above
+    is one backward recursion, acc_j = E_j + q acc_(j+1): 2 L FFTs and L multiplications,
+    however far the light reaches.
     """
     M = _as_masks(layers)
     L, H, W = M.shape
     P = max(t.numel() for t in theta.values())
     att = _depth_tensor(depth, "att_length_um", P, M.device)
-    spread = _depth_tensor(depth, "spread", P, M.device)
-    # layers that light reaches: exp(-k dz / att) >= DEPTH_CUTOFF (the deepest reach of the P sets)
-    reach = float(att.detach().max()) * -math.log(DEPTH_CUTOFF) / float(layer_um)
-    K = int(min(L, math.floor(reach) + 1))
-    extra_px = float(spread.detach().max()) * (K - 1) * float(layer_um) / float(pixel_size_um)
+    diff = _depth_tensor(depth, "diffusion_um", P, M.device)
+    # pad for the scatter down to where the light is spent (or the bottom layer)
+    reach_um = min((L - 1) * float(layer_um), float(att.detach().max()) * -math.log(DEPTH_CUTOFF))
+    extra_px = math.sqrt(max(float(diff.detach().max()) * reach_um, 0.0)) / float(pixel_size_um)
     support = model.support_px({k: v.detach().cpu() for k, v in theta.items()}) + 4.0 * extra_px
     shape = padded_shape((H, W), support, scale)
     spec = torch.fft.rfft2(model.exposure(M, theta, scale), s=shape)  # (P, L, Nh, Nw//2+1)
-    fy = torch.fft.fftfreq(shape[0], device=M.device, dtype=DTYPE) / scale  # cycles per design pixel
-    fx = torch.fft.rfftfreq(shape[1], device=M.device, dtype=DTYPE) / scale
-    acc = spec.clone()  # depth 0: the layer's own exposure, as in 2-D
-    for k in range(1, K):
-        d_um = k * float(layer_um)
-        a = torch.exp(-d_um / att)  # (P,)
-        s = spread * (d_um / float(pixel_size_um))  # (P,) extra sd in design pixels
-        g = sampled_gaussian_transfer(fy, s)[:, :, None] * sampled_gaussian_transfer(fx, s)[:, None, :]
-        acc[:, : L - k] = acc[:, : L - k] + (a[:, None, None] * g)[:, None] * spec[:, k:]
-    return model.blur_spectrum(acc, theta, shape, (H, W), scale)
+    if L > 1:
+        fy = torch.fft.fftfreq(shape[0], device=M.device, dtype=DTYPE) / scale  # cycles per design pixel
+        fx = torch.fft.rfftfreq(shape[1], device=M.device, dtype=DTYPE) / scale
+        f2 = fy[:, None] ** 2 + fx[None, :] ** 2
+        var_px = diff * float(layer_um) / float(pixel_size_um) ** 2  # (P,) extra variance per layer, design px^2
+        q = torch.exp(-float(layer_um) / att)[:, None, None] * torch.exp(-2 * math.pi**2 * var_px[:, None, None] * f2)
+        accs = [spec[:, L - 1]]
+        for j in range(L - 2, -1, -1):
+            accs.append(spec[:, j] + q * accs[-1])
+        spec = torch.stack(accs[::-1], dim=1)
+    return model.blur_spectrum(spec, theta, shape, (H, W), scale)
 
 
 def layer_prints(model: PrinterModel, layers, theta: Theta, depth: dict, layer_um: float, pixel_size_um: float,

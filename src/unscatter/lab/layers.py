@@ -7,8 +7,8 @@ photo-initiator bleaches, so a layer that has been exposed many times lets more 
 through. Each voxel cures by the dose it has gathered from every exposure after it was
 printed (the 2-D lab's polymer density, cell noise and post-wash swelling per layer).
 Richer than the model in unscatter.model.layer_dose on purpose: absorption that changes
-with exposure, scatter that grows like the square root of depth (diffusion) rather than
-linearly, a saturating cure, cell noise.
+with exposure (bleaching), a heavy-tailed kernel whose tail does not widen with depth
+while its core does, a saturating cure, cell noise in every layer.
 
 Imaging: a confocal z-stack (one 16-bit page a slice, ``z_step_um`` apart) at an unknown
 lateral pose and an unknown z offset of the print's bottom; the axial blur (Gaussian,
