@@ -4,22 +4,6 @@
 # and scored. z-stacks that fail registration QC are skipped (never used) and, in the
 # benchmark, scored as failed.
 
-LAYERS = f"{RESULTS}/layers"
-
-
-def designs3d_files(wildcards=None):
-    """The 3-D designs' layer PNGs as inputs, so that an edited design reruns what uses it."""
-    folder = Path(config["layers"]["designs"])
-    if not folder.is_dir():
-        raise WorkflowError(f"config: layers.designs {folder} is not a folder")
-    found = sorted(p.name for p in folder.iterdir() if p.is_dir() and not p.name.startswith("."))
-    names = config["layers"]["names"] or found
-    missing = [n for n in names if n not in found]
-    if missing:
-        raise WorkflowError(f"config: layers.names: no {', '.join(missing)} in {folder}")
-    return [str(p) for n in names for p in sorted((folder / n).glob("*.png"))]
-
-
 rule trial_masks3d:
     """3-D trial prints: bridges, channels, towers, stairs (one PNG a layer)."""
     output:
