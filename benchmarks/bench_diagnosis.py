@@ -147,7 +147,7 @@ def random_effect_lab(rng: np.random.Generator, effect: str) -> tuple[dict, str]
         p["dose_gamma"] = g
         mag = f"gamma {g:.2f}"
     elif effect == "illumination_field":
-        q = sign * float(rng.uniform(0.08, 0.2))
+        q = sign * float(rng.uniform(0.15, 0.3))
         p["illumination"]["quartic"] = q
         mag = f"quartic {q:+.2f}"
     elif effect == "edge_offset":
@@ -245,7 +245,7 @@ def random_labs(args) -> None:
         printer = Printer(cfg["printer"], size, px)
         d = root / f"lab{li:02d}_{effect}"
         tr_prints, _ = _lab_truth(printer, level, trial, lab_seed)
-        ho_prints, ho_floor = _lab_truth(printer, level, ho_masks, lab_seed + 1, votes=7)
+        ho_prints, ho_floor = _lab_truth(printer, level, ho_masks, lab_seed + 1, votes=11)
         prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"]))
         t0 = time.perf_counter()
