@@ -218,10 +218,11 @@ def random_labs(args) -> None:
     count = args.count or 32
     held = args.heldout
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
-    root = Path(args.out or "benchmarks/out/diagnosis") / f"seed{seed}{'_quick' if args.quick else ''}"
+    root = Path(args.out or "benchmarks/out/diagnosis") / f"seed{seed}{'_quick' if args.quick else ''}{args.tag}"
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
-           + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else ""))
+           + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
+           + (f" --objective {args.objective}" if args.objective else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
     rng = np.random.default_rng(seed)
@@ -249,7 +250,8 @@ def random_labs(args) -> None:
         prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"]))
         t0 = time.perf_counter()
-        calibrate([prints], d / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False)
+        calibrate([prints], d / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False,
+                  **({"objective": args.objective} if args.objective else {}))
         t_cal = time.perf_counter() - t0
         t0 = time.perf_counter()
         r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False,
@@ -328,6 +330,9 @@ def main():
                     help="N random labs (unscatter.lab.random_lab), one effect each, instead of the scenarios")
     ap.add_argument("--seed", type=int, default=None, help="random labs: the seed (default: a new one, printed)")
     ap.add_argument("--heldout", type=int, default=16, help="random labs: held-out paper masks and as many test patterns")
+    ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (calibration.OBJECTIVES; "
+                    "default: its default); the diagnosis uses the calibration's")
+    ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
     ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)})")
     args = ap.parse_args()
     if args.random_labs:

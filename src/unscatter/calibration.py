@@ -16,6 +16,11 @@ averaging among all 32 trial data pairs", with the hard threshold. Here:
    prints for the parameters' spread. Refits run a small GA in a box around the
    full-data optimum, then the refinement.
 
+The objective (setting ``objective``, ``OBJECTIVES``) is the paper's mean squared
+distance by default (``mismatch``); ``pixel_error`` weighs each print by the inverse of
+its printed area, so that the fit is scored per print as the prints are judged (IoU,
+pixel error) rather than per pixel, where large prints outweigh thin ones.
+
 Inputs are registration outputs (``<id>.png`` prints in mask coordinates, ``qc.tsv``,
 ``batch.yaml``); prints with status ok or empty are used, failed ones never.
 """
@@ -82,12 +87,38 @@ DEFAULTS = dict(
     # threads on 2 shared cores OpenMP spin-waits, measured 3.5x slower than 1 thread on a
     # busy machine. Results depend (slightly) on the thread count: part of the settings.
     threads=_D.threads,
+    # what the fit minimises (OBJECTIVES): "mismatch", the paper's mean squared distance,
+    # weighs each print by its area; "pixel_error" weighs each print by 1 / its printed
+    # area, as the pixel error and IoU that the prints are scored by do
+    objective="mismatch",
+    area_floor=0.02,  # pixel_error: the printed area is counted as at least this share of the field
 )
 
-OBJECTIVE = (
-    "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
-    "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"
-)
+OBJECTIVES = {
+    "mismatch": (
+        "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
+        "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"),
+    "pixel_error": (
+        "mean over prints of |measured XOR simulated| / max(|measured|, area_floor x pixels), hard threshold, full "
+        "resolution: each print's pixel error (unscatter.metrics), so that a thin or small print weighs as much as a "
+        "large one (the paper's squared distance weighs prints by their area)"),
+}
+OBJECTIVE = OBJECTIVES["mismatch"]
+
+
+def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
+    """Per-print weights (mean 1) that make the weighted mean of per-print mismatch the
+    ``objective`` (``OBJECTIVES``): ones for the paper's mismatch, and for pixel_error
+    pixels / max(printed area, area_floor x pixels), normalised to mean 1."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}; known: {sorted(OBJECTIVES)}")
+    B = len(prints)
+    if objective == "mismatch" or B == 0:
+        return np.ones(B)
+    npx = prints[0].size
+    area = np.asarray(prints, bool).reshape(B, -1).sum(axis=1)
+    w = npx / np.maximum(area, float(area_floor) * npx)
+    return w / w.mean()
 
 
 # ----------------------------------------------------------------------------- data
@@ -210,7 +241,8 @@ class Objective:
         self.sim = sim
         self.target = target  # (B, h, w) measured print (0/1) at the sim's sample points
         B = target.shape[0]
-        w = torch.ones(B) if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
+        self.raw_weights = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+        w = torch.as_tensor(self.raw_weights.astype(np.float32))
         self.weights = (w / w.sum()).to(target.device, torch.float32)
         npx = target.shape[1] * target.shape[2]
         # for a binary simulated print s: (t - s)^2 = t^2 + s (1 - 2 t), so one masked sum per print
@@ -234,9 +266,11 @@ class Objective:
         return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights)
 
     def subset(self, idx, weights=None) -> Objective:
+        """The objective on prints ``idx``, their weights times ``weights`` (e.g. bootstrap counts)."""
         idx = np.asarray(idx)
         t = self.target[torch.as_tensor(idx, device=self.target.device)]
-        return Objective(self.sim.subset(idx), t, weights)
+        w = self.raw_weights[idx] * (1.0 if weights is None else np.asarray(weights, np.float64))
+        return Objective(self.sim.subset(idx), t, w)
 
     def per_print(self, theta) -> torch.Tensor:
         """(P, B) mean squared distance per print, hard threshold."""
@@ -461,6 +495,8 @@ def calibrate(prints_dirs, out_dir, model: str = _D.model, seed: int = _D.seed, 
     checked = {k: CALIBRATION.check(k, v) for k, v in dict(settings, model=model, seed=seed).items()
                if k in CALIBRATION.settings and not (k == "threads" and v is None)}
     s = {**DEFAULTS, **settings, **checked}
+    if s["objective"] not in OBJECTIVES:
+        raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
     inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
     before = torch.get_num_threads()
     with output_dir(out_dir, command="calibrate", inputs=inputs) as tmp:
@@ -490,10 +526,11 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
 
     sim = FixedMasks(m, masks_to_tensor(data.masks, device), support_px=support)
     objs: dict[int, Objective] = {}
+    weights = print_weights(data.prints, s["objective"], s["area_floor"])
 
     def obj(f):
         if f not in objs:
-            objs[f] = Objective.build(sim, data.prints, f)
+            objs[f] = Objective.build(sim, data.prints, f, weights)
         return objs[f]
 
     full = obj(1)
@@ -552,7 +589,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         entries[k] = e
     fitted.info = dict(
         parameter_extras={k: e for k, e in entries.items() if e},
-        objective=dict(definition=OBJECTIVE, value=fit.objective, ga=fit.objective_ga, refinement_kept=fit.refined,
+        objective=dict(name=s["objective"], definition=OBJECTIVES[s["objective"]], area_floor=s["area_floor"], value=fit.objective, ga=fit.objective_ga, refinement_kept=fit.refined,
                        in_sample_iou_mean=float(np.mean([r["iou"] for r in per_print]))),
         data=dict(prints_dirs=[str(Path(d).resolve()) for d in data.prints_dirs], design_size=[H, W], prints=len(data),
                   ids=data.labels, empty=[lab for lab, st in zip(data.labels, data.status) if st == "empty"],
@@ -715,5 +752,5 @@ def simulate_dir(params_path, mask_dir, out_dir, device=None) -> list[Path]:
     return [Path(out_dir) / f"{mid}.png" for mid in masks]
 
 
-__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "Space", "run_ga", "refine", "fit_params", "cross_validate",
+__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "OBJECTIVES", "print_weights", "Space", "run_ga", "refine", "fit_params", "cross_validate",
            "bootstrap", "residual_rgb", "fit_figure", "simulate_dir", "grid_factor", "band_factor"]
