@@ -88,22 +88,48 @@ DEFAULTS = dict(
     # busy machine. Results depend (slightly) on the thread count: part of the settings.
     threads=_D.threads,
     # what the fit minimises (OBJECTIVES): "mismatch", the paper's mean squared distance,
-    # weighs each print by its area; "pixel_error" weighs each print by 1 / its printed
-    # area, as the pixel error and IoU that the prints are scored by do
+    # weighs each print by its area; "dice" (1 - Dice per print, IoU's twin) and
+    # "pixel_error" weigh each print as the scores of prints (IoU, pixel error) do
     objective="mismatch",
-    area_floor=0.02,  # pixel_error: the printed area is counted as at least this share of the field
+    area_floor=0.02,  # dice, pixel_error: a print's area counts as at least about this share of the field
 )
 
 OBJECTIVES = {
     "mismatch": (
         "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
         "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"),
+    "dice": (
+        "mean over prints of |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels), hard "
+        "threshold, full resolution: 1 - Dice per print, a monotone function of each print's IoU (IoU = D / (2 - D)), "
+        "so the fit is scored as the prints are"),
     "pixel_error": (
         "mean over prints of |measured XOR simulated| / max(|measured|, area_floor x pixels), hard threshold, full "
         "resolution: each print's pixel error (unscatter.metrics), so that a thin or small print weighs as much as a "
         "large one (the paper's squared distance weighs prints by their area)"),
 }
 OBJECTIVE = OBJECTIVES["mismatch"]
+
+
+def build_objective(sim: FixedMasks, prints: np.ndarray, factor: int, objective: str = "mismatch",
+                    area_floor: float = 0.02) -> Objective:
+    """``Objective.build`` for one of ``OBJECTIVES``, on every ``factor``-th pixel."""
+    return Objective.build(sim, prints, factor, print_weights(prints, objective, area_floor),
+                           dice_floor=area_floor if objective == "dice" else None)
+
+
+def per_print_error(simulated: np.ndarray, measured: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02,
+                    weights=None) -> np.ndarray:
+    """Each print's share of the objective (its mean over prints is the objective):
+    mismatch, mismatch times ``weights`` (pixel_error: ``print_weights`` of all the
+    prints), or 1 - Dice."""
+    s, m = np.asarray(simulated, bool), np.asarray(measured, bool)
+    B = len(m)
+    xor = (s != m).reshape(B, -1).sum(axis=1).astype(np.float64)
+    npx = m[0].size if B else 1
+    if objective == "dice":
+        return xor / (s.reshape(B, -1).sum(axis=1) + m.reshape(B, -1).sum(axis=1) + area_floor * npx)
+    w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+    return xor / npx * w
 
 
 def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
@@ -113,7 +139,7 @@ def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: f
     if objective not in OBJECTIVES:
         raise ValueError(f"unknown objective {objective!r}; known: {sorted(OBJECTIVES)}")
     B = len(prints)
-    if objective == "mismatch" or B == 0:
+    if objective in ("mismatch", "dice") or B == 0:
         return np.ones(B)
     npx = prints[0].size
     area = np.asarray(prints, bool).reshape(B, -1).sum(axis=1)
@@ -235,12 +261,18 @@ def band_factor(sim: FixedMasks, model, values: dict, fmax: int, tol: float = BA
 
 
 class Objective:
-    """Weighted mean over prints of mean((measured - simulated)^2) on one grid."""
+    """Weighted mean over prints of mean((measured - simulated)^2) on one grid; with
+    ``dice_floor`` (a share of the field) each print's |measured XOR simulated| /
+    (|measured| + |simulated| + dice_floor x pixels) instead, 1 - Dice."""
 
-    def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None):
+    def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None,
+                 dice_floor: float | None = None):
         self.sim = sim
         self.target = target  # (B, h, w) measured print (0/1) at the sim's sample points
         B = target.shape[0]
+        self.dice_floor = dice_floor
+        self.tsum = target.sum(dim=(1, 2))
+        self.floor_px = None if dice_floor is None else float(dice_floor) * target.shape[1] * target.shape[2]
         self.raw_weights = np.ones(B) if weights is None else np.asarray(weights, np.float64)
         w = torch.as_tensor(self.raw_weights.astype(np.float32))
         self.weights = (w / w.sum()).to(target.device, torch.float32)
@@ -256,21 +288,21 @@ class Objective:
         self.block = B if self.chunk * B * per <= 32e6 else max(1, int(16e6 // (self.chunk * per)))
 
     @classmethod
-    def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None):
+    def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None, dice_floor: float | None = None):
         """The objective on every ``factor``-th pixel of the full-resolution one.
 
         ``sim`` is the full-resolution evaluator of the prints' masks; the samples are
         exact dose values, so this is an unbiased subsample of the full objective.
         """
         target = torch.from_numpy(np.ascontiguousarray(prints[:, ::factor, ::factor], dtype=np.float32))
-        return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights)
+        return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights, dice_floor=dice_floor)
 
     def subset(self, idx, weights=None) -> Objective:
         """The objective on prints ``idx``, their weights times ``weights`` (e.g. bootstrap counts)."""
         idx = np.asarray(idx)
         t = self.target[torch.as_tensor(idx, device=self.target.device)]
         w = self.raw_weights[idx] * (1.0 if weights is None else np.asarray(weights, np.float64))
-        return Objective(self.sim.subset(idx), t, w)
+        return Objective(self.sim.subset(idx), t, w, dice_floor=self.dice_floor)
 
     def per_print(self, theta) -> torch.Tensor:
         """(P, B) mean squared distance per print, hard threshold."""
@@ -284,8 +316,15 @@ class Objective:
                 for j in range(0, B, self.block):
                     sl = slice(j, j + self.block) if self.block < B else None
                     s = self.sim.prints(sub, masks=sl)
-                    parts.append(torch.where(s, self.gain[sl or slice(None)], 0.0).sum(dim=(2, 3)))
-                out.append(self.base[None] + torch.cat(parts, dim=1))
+                    sl = sl or slice(None)
+                    if self.floor_px is None:
+                        parts.append(self.base[sl][None] + torch.where(s, self.gain[sl], 0.0).sum(dim=(2, 3)))
+                    else:
+                        S = s.sum(dim=(2, 3)).to(torch.float32)
+                        inter = torch.where(s, self.target[sl], 0.0).sum(dim=(2, 3))
+                        t = self.tsum[sl][None]
+                        parts.append((t + S - 2 * inter) / (t + S + self.floor_px))
+                out.append(torch.cat(parts, dim=1))
         return torch.cat(out)
 
     def hard(self, theta) -> np.ndarray:
@@ -293,7 +332,10 @@ class Objective:
 
     def smooth(self, theta, temperature: float) -> torch.Tensor:
         s = self.sim.prints(theta, temperature)
-        return ((s - self.target[None]) ** 2).mean(dim=(2, 3)) @ self.weights
+        if self.floor_px is None:
+            return ((s - self.target[None]) ** 2).mean(dim=(2, 3)) @ self.weights
+        S, inter, t = s.sum(dim=(2, 3)), (s * self.target[None]).sum(dim=(2, 3)), self.tsum[None]
+        return ((t + S - 2 * inter) / (t + S + self.floor_px)) @ self.weights
 
 
 class Space:
@@ -526,11 +568,9 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
 
     sim = FixedMasks(m, masks_to_tensor(data.masks, device), support_px=support)
     objs: dict[int, Objective] = {}
-    weights = print_weights(data.prints, s["objective"], s["area_floor"])
-
     def obj(f):
         if f not in objs:
-            objs[f] = Objective.build(sim, data.prints, f, weights)
+            objs[f] = build_objective(sim, data.prints, f, s["objective"], s["area_floor"])
         return objs[f]
 
     full = obj(1)
@@ -752,5 +792,5 @@ def simulate_dir(params_path, mask_dir, out_dir, device=None) -> list[Path]:
     return [Path(out_dir) / f"{mid}.png" for mid in masks]
 
 
-__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "OBJECTIVES", "print_weights", "Space", "run_ga", "refine", "fit_params", "cross_validate",
+__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "OBJECTIVES", "print_weights", "build_objective", "per_print_error", "Space", "run_ga", "refine", "fit_params", "cross_validate",
            "bootstrap", "residual_rgb", "fit_figure", "simulate_dir", "grid_factor", "band_factor"]

@@ -65,9 +65,11 @@ from .calibration import (
     Objective,
     Space,
     band_factor,
+    build_objective,
     fit_params,
     grid_factor,
     load_prints,
+    per_print_error,
     print_weights,
     refine,
     residual_rgb,
@@ -131,6 +133,7 @@ QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, 
 
 ERRORS = {
     "mismatch": "held-out mismatch: fraction of pixels where the measured and the simulated print differ",
+    "dice": "held-out 1 - Dice per print: |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels)",
     "pixel_error": ("held-out pixel error: pixels where the measured and the simulated print differ over the measured "
                     "print's area (at least area_floor of the field), times the mean of that weight (calibration.OBJECTIVES)"),
 }
@@ -151,6 +154,7 @@ class _Context:
         support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
         self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support)
         self._objs: dict[int, Objective] = {}
+        self.objective, self.area_floor = s["objective"], s["area_floor"]
         self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
         H, W = data.masks.shape[1:]
         self.f_ga = grid_factor((H, W), s["ga_size"])
@@ -158,7 +162,7 @@ class _Context:
 
     def obj(self, f: int) -> Objective:
         if f not in self._objs:
-            self._objs[f] = Objective.build(self.sim, self.data.prints, f, self.weights)
+            self._objs[f] = build_objective(self.sim, self.data.prints, f, self.objective, self.area_floor)
         return self._objs[f]
 
     def fit(self, start: dict, idx, seed: int, s: dict, known: set, desc: str) -> dict:
@@ -254,7 +258,7 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
         sims[test] = ctx.predict(v, test)
         if bar is not None:
             bar.update(1)
-    err = np.mean(sims != data.prints, axis=(1, 2)) * ctx.weights
+    err = per_print_error(sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights)
     _, effects = split_model_name(ctx.params.model)
     return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
 
