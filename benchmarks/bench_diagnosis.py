@@ -233,7 +233,7 @@ def random_labs(args) -> None:
     ho_masks = {f"paper_{k}": v for k, v in trial_masks(held, seed=seed % 100_000 + 1, size=size).items()}
     ho_masks.update(test_pattern_masks(held, seed=seed, size=size))
     lab_rows, print_rows = [], []
-    head = (f"{'lab':<4}{'effect':<19}{'magnitude':<27}{'named':<24}{'unexpl.':<8}{'verdict':<12}{'IoU eq1':>8}{'sel':>7}"
+    head = (f"{'lab':<4}{'effect':<19}{'magnitude':<27}{'1-IoU fx':>9}{'named':<24}{'unexpl.':<8}{'verdict':<12}{'IoU eq1':>8}{'sel':>7}"
             f"{'floor':>7}{'gap':>7}{'pat eq1':>8}{'pat sel':>8}{'pat flr':>8}{'sig fit/lab':>12}{'T fit/lab':>10}{'cal':>6}{'diag':>6}")
     print(head, flush=True)
     lines = [head]
@@ -247,6 +247,14 @@ def random_labs(args) -> None:
         d = root / f"lab{li:02d}_{effect}"
         tr_prints, _ = _lab_truth(printer, level, trial, lab_seed)
         ho_prints, ho_floor = _lab_truth(printer, level, ho_masks, lab_seed + 1, votes=11)
+        # how much the effect matters: the lab's noise-free held-out prints with it vs without it
+        quiet = {"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}}
+        with_fx = Printer(load_config(overrides=_merge(over, quiet))["printer"], size, px)
+        without = Printer(load_config(overrides=_merge(random_effect_lab(np.random.default_rng(lab_seed), "none")[0], quiet))
+                          ["printer"], size, px)
+        a, _ = _lab_truth(with_fx, level, ho_masks, 0)
+        b, _ = _lab_truth(without, level, ho_masks, 0)
+        effect_iou = float(np.mean([metrics.iou(a[k], b[k]) for k in ho_masks]))
         prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"]))
         t0 = time.perf_counter()
@@ -272,7 +280,7 @@ def random_labs(args) -> None:
         mean = lambda rs, k: float(np.mean([x[k] for x in rs]))  # noqa: E731
         sig_lab = cfg["printer"]["kernel"]["sigma_um"] / px
         v = verdict(effect, r["effects"], r["unexplained_residual"])
-        row = dict(lab=li, lab_seed=lab_seed, effect=effect, magnitude=mag, named=",".join(r["effects"]) or "-",
+        row = dict(lab=li, lab_seed=lab_seed, effect=effect, magnitude=mag, effect_iou=effect_iou, named=",".join(r["effects"]) or "-",
                    unexplained=",".join(r["unexplained_diagnostics"]) if r["unexplained_residual"] else "-", verdict=v,
                    iou_eq1=mean(rows, "iou_eq1"), iou_selected=mean(rows, "iou_selected"), iou_floor=mean(rows, "iou_floor"),
                    patterns_iou_eq1=mean(pat, "iou_eq1"), patterns_iou_selected=mean(pat, "iou_selected"),
@@ -280,7 +288,7 @@ def random_labs(args) -> None:
                    sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
                    T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1))
         lab_rows.append(row)
-        line = (f"{li:<4}{effect:<19}{mag:<27}{row['named']:<24}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
+        line = (f"{li:<4}{effect:<19}{mag:<27}{1 - effect_iou:7.4f}  {row['named']:<24}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
                 f"{row['iou_eq1']:8.4f}{row['iou_selected']:7.4f}{row['iou_floor']:7.4f}{row['iou_floor'] - row['iou_selected']:+7.4f}"
                 f"{row['patterns_iou_eq1']:8.4f}{row['patterns_iou_selected']:8.4f}{row['patterns_iou_floor']:8.4f}"
                 f"{row['sigma_eq1_px'] / sig_lab:7.3f}/{row['sigma_selected_px'] / sig_lab:.3f}"
