@@ -233,7 +233,7 @@ def random_labs(args) -> None:
     ho_masks = {f"paper_{k}": v for k, v in trial_masks(held, seed=seed % 100_000 + 1, size=size).items()}
     ho_masks.update(test_pattern_masks(held, seed=seed, size=size))
     lab_rows, print_rows = [], []
-    head = (f"{'lab':<4}{'effect':<19}{'magnitude':<27}{'1-IoU fx':>9}{'named':<24}{'unexpl.':<8}{'verdict':<12}{'IoU eq1':>8}{'sel':>7}"
+    head = (f"{'lab':<4}{'effect':<19}{'magnitude':<27}{'1-IoU fx':>9}  {'named':<32}{'unexpl.':<8}{'verdict':<12}{'IoU eq1':>8}{'sel':>7}"
             f"{'floor':>7}{'gap':>7}{'pat eq1':>8}{'pat sel':>8}{'pat flr':>8}{'sig fit/lab':>12}{'T fit/lab':>10}{'cal':>6}{'diag':>6}")
     print(head, flush=True)
     lines = [head]
@@ -288,7 +288,7 @@ def random_labs(args) -> None:
                    sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
                    T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1))
         lab_rows.append(row)
-        line = (f"{li:<4}{effect:<19}{mag:<27}{1 - effect_iou:7.4f}  {row['named']:<24}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
+        line = (f"{li:<4}{effect:<19}{mag:<27}{1 - effect_iou:9.4f}  {row['named']:<32}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
                 f"{row['iou_eq1']:8.4f}{row['iou_selected']:7.4f}{row['iou_floor']:7.4f}{row['iou_floor'] - row['iou_selected']:+7.4f}"
                 f"{row['patterns_iou_eq1']:8.4f}{row['patterns_iou_selected']:8.4f}{row['patterns_iou_floor']:8.4f}"
                 f"{row['sigma_eq1_px'] / sig_lab:7.3f}/{row['sigma_selected_px'] / sig_lab:.3f}"
