@@ -405,3 +405,25 @@ def test_candidate_fit_reaches_the_true_parameters_error():
     assert err(start) > 1.3 * err(truth)  # the tail matters at this strength
     assert err(fit) < 1.05 * err(truth), (err(fit), err(truth), fit)
     assert fit["tail_fraction"] == pytest.approx(0.3, abs=0.1)
+
+
+def test_refinement_keeps_kernel_parameters_inside_the_padding():
+    """The L-BFGS refinement may step outside the bounds, but never to a kernel size
+    beyond its upper bound: the evaluator's padding is made for the bounds (a multi-start
+    near a tail's longest length stopped the diagnosis with 'a kernel is wider than this
+    evaluator's padding')."""
+    from unscatter.calibration import Space, refine
+
+    p = extend_params(default_params("eq1"), ["heavy_tail"])
+    m = get_model(p.model)
+    seen = []
+
+    class Longer:  # an objective that always wants a longer tail and a larger threshold
+        def smooth(self, theta, temperature):
+            seen.append({k: float(v.detach()[0]) for k, v in theta.items()})
+            return -(theta["tail_length_px"] / 40 + theta["T"] / 1.5 + theta["sigma_px"] / 12)
+
+    refine(Space(p), Longer(), m, p.values | dict(tail_length_px=38.0, sigma_px=11.0), CPU, (0.1,), 5)
+    assert max(v["tail_length_px"] for v in seen) <= p.bounds["tail_length_px"][1] + 1e-4
+    assert max(v["sigma_px"] for v in seen) <= p.bounds["sigma_px"][1] + 1e-4
+    assert max(v["T"] for v in seen) > p.bounds["T"][1]  # the others may step outside (clipped at the end)

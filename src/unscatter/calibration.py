@@ -451,7 +451,8 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             th[k] = free[i : i + 1]
         return {k: th[k] for k in model.names}
 
-    sig = space.names.index("sigma_px") if "sigma_px" in space.names else None
+    # kernel parameters stay within their upper bounds, where the evaluator's padding holds the kernel
+    kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
     for temp in temperatures:
         opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
 
@@ -459,8 +460,8 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             opt.zero_grad()
             with torch.no_grad():  # stay where the evaluator's padding holds the kernel
                 u.clamp_(-0.5, 1.5)
-                if sig is not None:
-                    u[sig].clamp_(max=1.0)
+                for i in kern:
+                    u[i].clamp_(max=1.0)
             loss = objective.smooth(theta_of(u), temp)[0]
             loss.backward()
             return loss
