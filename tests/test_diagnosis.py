@@ -408,8 +408,8 @@ def test_candidate_fit_reaches_the_true_parameters_error():
 
 
 def test_refinement_keeps_kernel_parameters_inside_the_padding():
-    """The L-BFGS refinement may step outside the bounds, but never to a kernel size
-    beyond its upper bound: the evaluator's padding is made for the bounds (a multi-start
+    """The L-BFGS refinement may step outside the bounds, but never with a kernel
+    parameter: the evaluator's padding is made for the bounds (a multi-start
     near a tail's longest length stopped the diagnosis with 'a kernel is wider than this
     evaluator's padding')."""
     from unscatter.calibration import Space, refine
@@ -427,3 +427,14 @@ def test_refinement_keeps_kernel_parameters_inside_the_padding():
     assert max(v["tail_length_px"] for v in seen) <= p.bounds["tail_length_px"][1] + 1e-4
     assert max(v["sigma_px"] for v in seen) <= p.bounds["sigma_px"][1] + 1e-4
     assert max(v["T"] for v in seen) > p.bounds["T"][1]  # the others may step outside (clipped at the end)
+    # an aspect ratio below its lower bound widens the kernel as much as one above the upper
+    pa = extend_params(default_params("eq1"), ["anisotropy"])
+    seen.clear()
+
+    class Rounder:
+        def smooth(self, theta, temperature):
+            seen.append({k: float(v.detach()[0]) for k, v in theta.items()})
+            return theta["aniso_ratio"] / 2
+
+    refine(Space(pa), Rounder(), get_model(pa.model), pa.values | dict(aniso_ratio=0.6, sigma_px=11.0), CPU, (0.1,), 5)
+    assert min(v["aniso_ratio"] for v in seen) >= pa.bounds["aniso_ratio"][0] - 1e-4

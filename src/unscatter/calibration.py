@@ -451,7 +451,8 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             th[k] = free[i : i + 1]
         return {k: th[k] for k in model.names}
 
-    # kernel parameters stay within their upper bounds, where the evaluator's padding holds the kernel
+    # kernel parameters stay within their bounds, where the evaluator's padding holds the kernel
+    # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1)
     kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
     for temp in temperatures:
         opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
@@ -461,7 +462,7 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             with torch.no_grad():  # stay where the evaluator's padding holds the kernel
                 u.clamp_(-0.5, 1.5)
                 for i in kern:
-                    u[i].clamp_(max=1.0)
+                    u[i].clamp_(0.0, 1.0)
             loss = objective.smooth(theta_of(u), temp)[0]
             loss.backward()
             return loss
