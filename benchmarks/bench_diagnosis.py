@@ -2,6 +2,47 @@
 how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
+    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice]
+
+Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
+reproduces it). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
+over wide ranges) with every effect beyond Eq. 1 off but one, drawn in shuffled rounds
+from none, heavy_tail, anisotropy, dose_nonlinearity (gamma 0.6-0.8 or 1.3-1.8),
+illumination_field (quartic +-0.15..0.3), edge_offset (+-3..7 um) and a lamp hotspot
+(outside the library: right when the residual is flagged unexplained). The lab prints
+32 trial masks (its true prints in mask coordinates: microscope and registration left
+out, so only calibration and diagnosis are judged); ``calibrate`` (defaults, no CV or
+bootstrap) then ``diagnose`` (defaults, or ``quick``) run on them. Scored on 16 held-out
+paper masks and 16 test patterns (gratings, near-threshold, dots, ...) against the lab's
+noisy prints: IoU of Eq. 1, of the selected model and of the floor (the per-pixel
+majority of 11 other prints of the lab: the best its own printer predicts one print).
+"1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
+it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
+
+Measured on 2 shared CPU cores (other jobs running: times are rough), 1 torch thread,
+``--quick`` (256 x 256, 32 prints, quick diagnosis). BEFORE: main at de62901; AFTER: the
+multi-start candidate fits (``diagnosis.DEFAULTS['starts']``) and the kernel clamp of the
+refinement, objective unchanged (the paper's mismatch):
+
+    seed    labs  detection right/wrong/missed/false alarm   IoU gap to floor, median [max]   Eq. 1 gap   diagnosis s, median [max]
+                  before        after                        before           after                     before      after
+    451170  8     7/0/1/0       7/0/1/0                      0.0028 [0.0226]  0.0022 [0.0226]  0.0171    24 [58]     44 [55]
+    605389  8     8/0/0/0       8/0/0/0                      -0.0002 [0.0436] -0.0012 [0.0436] 0.0331    34 [164]    47 [145]
+    FRESH
+
+The miss is a quartic field of +0.27 (beyond the library's +-0.25): Eq. 1 absorbs it in
+c1, c2 and T to 0.003 of the floor. The largest gaps are the hotspots (outside the
+library; flagged unexplained, 0.02-0.04 below the floor). The heavy-tail labs gain most
+from the multi-start (selected IoU 0.9878 -> 0.9897, floor 0.9887; fitted sigma 0.95 ->
+0.99 of the lab's). Fitted sigma of Eq. 1 on labs whose kernel is the lab's Gaussian:
+median 1.00 (0.96-1.07 but for gamma and edge-offset labs, where Eq. 1 bends sigma to
+mimic them): without the microscope the calibration is not biased; the 15 % of issue
+#12 comes from the measurement chain. ``--objective dice`` (1 - Dice per print) on seed
+451170: 6 right, 1 missed, 1 false alarm (unexplained residual on the no-effect lab),
+an extra anisotropy on the heavy-tail lab; selected IoU lower on 7 of 8 labs (median
+gap to the floor 0.0042 vs 0.0022, fitted sigma 0.98 of the lab's): on prints that Eq. 1
+and its effects describe, weighing each print alike adds the noise of the small prints
+and buys nothing, so the paper's mismatch stays the default.
 
 For each scenario the virtual lab prints ``count`` trial masks (its prints in mask
 coordinates, microscope left out), Eq. 1 is calibrated on them as the workflow does
