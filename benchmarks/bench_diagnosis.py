@@ -2,6 +2,60 @@
 how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
+    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice]
+
+Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
+reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
+over wide ranges) with every effect beyond Eq. 1 off but one, drawn in shuffled rounds
+from none, heavy_tail, anisotropy, dose_nonlinearity (gamma 0.6-0.8 or 1.3-1.8),
+illumination_field (quartic +-0.15..0.3), edge_offset (+-3..7 um) and a lamp hotspot
+(outside the library: right when the residual is flagged unexplained). The lab prints
+32 trial masks (its true prints in mask coordinates: microscope and registration left
+out, so only calibration and diagnosis are judged); ``calibrate`` (defaults, no CV or
+bootstrap) then ``diagnose`` (defaults, or ``quick``) run on them. Scored on 16 held-out
+paper masks and 16 test patterns (gratings, near-threshold, dots, ...) against the lab's
+noisy prints: IoU of Eq. 1, of the selected model and of the floor (the per-pixel
+majority of 11 other prints of the lab: the best its own printer predicts one print).
+"1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
+it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
+
+Measured on 2 shared CPU cores (other jobs running: times are rough), 1 torch thread,
+``--quick`` (256 x 256, 32 prints, quick diagnosis). BEFORE: main at de62901; AFTER: the
+multi-start candidate fits (``diagnosis.DEFAULTS['starts']``) and the kernel clamp of the
+refinement, objective unchanged (the paper's mismatch):
+
+    seed    labs  detection right/wrong/missed/false alarm   IoU gap to floor, median [max]   Eq. 1 gap   diagnosis s, median [max]
+                  before        after                        before           after                     before      after
+    451170  8     7/0/1/0       7/0/1/0                      0.0028 [0.0226]  0.0022 [0.0226]  0.0171    24 [58]     44 [55]
+    605389  8     8/0/0/0       8/0/0/0                      -0.0002 [0.0436] -0.0012 [0.0436] 0.0331    34 [164]    47 [145]
+    482586  8     6/0/2/0       7/0/1/0                      -0.0002 [0.0591] -0.0010 [0.0591] 0.0279    18 [69]     50 [271]*
+
+(482586 was the fresh seed, drawn by the AFTER run. * the AFTER run shared the cores with
+a test run. Times are rough on shared cores, but the multi-start costs: the diagnosis
+took about 1.5-2x as long AFTER at --quick. The labs drawn depend on the seed and on N:
+reproduce with the same --random-labs N.) Both misses on 482586 BEFORE are heavy tails (0.16 x 45 um, 0.17 x
+31 um): the candidate fit stayed at tail_fraction 0 (+0.1 %) and 0.15 (+1.3 %); AFTER it
+reaches 0.15 x 12.8 px (+4.2 %, named) and 0.22 x 10.4 px (+9.7 %, but the bootstrap
+interval of the improvement touches 0: missed on power, Eq. 1 is 0.001 below the floor there).
+
+The miss on 451170 is a quartic field of +0.27 (beyond the library's +-0.25): Eq. 1 absorbs it in
+c1, c2 and T to 0.003 of the floor. The largest gaps are the hotspots (outside the
+library; flagged unexplained, 0.02-0.04 below the floor). The heavy-tail labs gain most
+from the multi-start (selected IoU 0.9878 -> 0.9897, floor 0.9887; fitted sigma 0.95 ->
+0.99 of the lab's). Fitted sigma of Eq. 1 on labs whose kernel is the lab's Gaussian:
+median 1.00 (0.96-1.07 but for gamma and edge-offset labs, where Eq. 1 bends sigma to
+mimic them): without the microscope the calibration is not biased; the 15 % of issue
+#12 comes from the measurement chain. Candidate fits alone (prints of the library model at random parameters, 24 trial masks
+of 128 x 128, cell-like dose noise; fitted from Eq. 1's fit as the diagnosis does):
+the heavy tail's held-out mismatch was 75 % above the true parameters' before the
+multi-start (the fit stayed at tail_fraction 0), +4 % and -0.3 % after; over all five
+effects, two draws each, median +0.4 %, max +7 % (the 4-parameter illumination field).
+``--objective dice`` (1 - Dice per print) on seed
+451170: 6 right, 1 missed, 1 false alarm (unexplained residual on the no-effect lab),
+an extra anisotropy on the heavy-tail lab; selected IoU lower on 7 of 8 labs (median
+gap to the floor 0.0042 vs 0.0022, fitted sigma 0.98 of the lab's): on prints that Eq. 1
+and its effects describe, weighing each print alike adds the noise of the small prints
+and buys nothing, so the paper's mismatch stays the default.
 
 For each scenario the virtual lab prints ``count`` trial masks (its prints in mask
 coordinates, microscope left out), Eq. 1 is calibrated on them as the workflow does
@@ -112,14 +166,240 @@ def lab_prints(out: Path, name: str, count: int, size: int) -> Path:
     return out
 
 
+# ------------------------------------------------------------------ random labs
+
+# one effect beyond Eq. 1 per random lab (or none); "hotspot" is outside the library
+RANDOM_EFFECTS = ("none", "heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field", "edge_offset", "hotspot")
+OUTSIDE = {"hotspot"}
+
+
+def random_effect_lab(rng: np.random.Generator, effect: str) -> tuple[dict, str]:
+    """Printer overrides of a random lab (``unscatter.lab.random_lab``: optics, noise and
+    cure over wide ranges) with every effect beyond Eq. 1 off but ``effect``, drawn at a
+    magnitude that changes prints by more than the lab's noise. Returns (overrides, magnitude)."""
+    from unscatter.lab import random_lab
+
+    p = random_lab(rng)["printer"]
+    p["kernel"]["heavy_tail"] = None
+    p["kernel"]["anisotropy"] = {"ratio": 1.0, "angle_deg": 0.0}
+    p["illumination"].update(quartic=0.0, hotspot=None)
+    p["dose_gamma"] = 1.0
+    p["edge_offset_um"] = 0.0
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    if effect == "none":
+        mag = "-"
+    elif effect == "heavy_tail":
+        f, lam = float(rng.uniform(0.15, 0.4)), float(rng.uniform(25.0, 90.0))
+        p["kernel"]["heavy_tail"] = {"fraction": f, "length_um": lam}
+        mag = f"tail {f:.2f} x {lam:.0f} um"
+    elif effect == "anisotropy":
+        r, a = float(rng.uniform(1.3, 1.8)), float(rng.uniform(0.0, 180.0))
+        p["kernel"]["anisotropy"] = {"ratio": r, "angle_deg": a}
+        mag = f"ratio {r:.2f} at {a:.0f} deg"
+    elif effect == "dose_nonlinearity":
+        g = float(rng.uniform(1.3, 1.8)) if sign > 0 else float(rng.uniform(0.6, 0.8))
+        p["dose_gamma"] = g
+        mag = f"gamma {g:.2f}"
+    elif effect == "illumination_field":
+        q = sign * float(rng.uniform(0.15, 0.3))
+        p["illumination"]["quartic"] = q
+        mag = f"quartic {q:+.2f}"
+    elif effect == "edge_offset":
+        e = sign * float(rng.uniform(3.0, 7.0))
+        p["edge_offset_um"] = e
+        mag = f"edge {e:+.1f} um"
+    elif effect == "hotspot":
+        hs = dict(amplitude=float(rng.uniform(0.2, 0.4)), x0=float(rng.uniform(-0.6, 0.6)), y0=float(rng.uniform(-0.6, 0.6)),
+                  width=float(rng.uniform(0.12, 0.3)))
+        p["illumination"]["hotspot"] = hs
+        mag = f"hotspot {hs['amplitude']:.2f} w {hs['width']:.2f}"
+    else:
+        raise ValueError(effect)
+    return {"printer": p}, mag
+
+
+def _lab_truth(printer, level, masks: dict, seed: int, votes: int = 0):
+    """The lab's prints of ``masks`` in mask coordinates (the microscope left out: only
+    calibration and diagnosis are judged) and, with ``votes``, the floor: the per-pixel
+    majority of ``votes`` other prints of the same masks (the best prediction the lab's own
+    printer gives of one noisy print; its noise-free print is not: erosion and swelling
+    act on the noisy density)."""
+    prints, floor = {}, {}
+    for i, (mid, m) in enumerate(masks.items()):
+        prints[mid] = printer.crop(printer.density(m, np.random.default_rng([seed, i]))) >= level
+        if votes:
+            n = sum((printer.crop(printer.density(m, np.random.default_rng([seed, i, 1 + v]))) >= level).astype(int)
+                    for v in range(votes))
+            floor[mid] = n > votes // 2
+    return prints, floor
+
+
+def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
+    rows = []
+    for mid, m in masks.items():
+        write_png(out / "masks" / f"{mid}.png", m)
+        write_png(out / f"{mid}.png", prints[mid])
+        rows.append(dict(id=mid, status="ok" if prints[mid].any() else "empty", reason="", mask=f"masks/{mid}.png"))
+    write_tsv(out / "qc.tsv", rows, ["id", "status", "reason", "mask"])
+    write_yaml(out / "batch.yaml", dict(pixel_size_um=px))
+    return out
+
+
+def verdict(effect: str, named: list, unexplained: bool) -> str:
+    """right / wrong / missed / false alarm (and partial: an outside effect described by a
+    library term without the residual flagged)."""
+    if effect == "none":
+        return "right" if not named and not unexplained else "false alarm"
+    if effect in OUTSIDE:
+        if unexplained:
+            return "right"
+        if named == ["illumination_field"]:
+            return "partial"
+        return "wrong" if named else "missed"
+    if effect in named:
+        return "right"
+    return "wrong" if named else "missed"
+
+
+def random_labs(args) -> None:
+    from unscatter import metrics
+    from unscatter.lab import Printer, load_config
+    from unscatter.masks import test_pattern_masks, test_pattern_of
+    from unscatter.model import load_params, simulate
+
+    seed = args.seed if args.seed is not None else int.from_bytes(os.urandom(4), "little") % 1_000_000
+    size = args.size or (256 if args.quick else 512)
+    count = args.count or 32
+    held = args.heldout
+    effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
+    root = Path(args.out or "benchmarks/out/diagnosis") / f"seed{seed}{'_quick' if args.quick else ''}{args.tag}"
+    root.mkdir(parents=True, exist_ok=True)
+    cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
+           + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
+           + (f" --objective {args.objective}" if args.objective else ""))
+    print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
+          f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
+    rng = np.random.default_rng(seed)
+    order = []
+    while len(order) < args.random_labs:  # every effect once per round, shuffled
+        order += [effects[i] for i in rng.permutation(len(effects))]
+    trial = trial_masks(count, seed=0, size=size)
+    ho_masks = {f"paper_{k}": v for k, v in trial_masks(held, seed=seed % 100_000 + 1, size=size).items()}
+    ho_masks.update(test_pattern_masks(held, seed=seed, size=size))
+    lab_rows, print_rows = [], []
+    head = (f"{'lab':<4}{'effect':<19}{'magnitude':<27}{'1-IoU fx':>9}  {'named':<32}{'unexpl.':<8}{'verdict':<12}{'IoU eq1':>8}{'sel':>7}"
+            f"{'floor':>7}{'gap':>7}{'pat eq1':>8}{'pat sel':>8}{'pat flr':>8}{'sig fit/lab':>12}{'T fit/lab':>10}{'cal':>6}{'diag':>6}")
+    print(head, flush=True)
+    lines = [head]
+    for li, effect in enumerate(order[: args.random_labs]):
+        lab_seed = int(rng.integers(1 << 31))
+        over, mag = random_effect_lab(np.random.default_rng(lab_seed), effect)
+        cfg = load_config(overrides=over)
+        px = cfg["batch"]["pixel_size_um"]
+        level = cfg["microscope"]["level"]
+        printer = Printer(cfg["printer"], size, px)
+        d = root / f"lab{li:02d}_{effect}"
+        tr_prints, _ = _lab_truth(printer, level, trial, lab_seed)
+        ho_prints, ho_floor = _lab_truth(printer, level, ho_masks, lab_seed + 1, votes=11)
+        # how much the effect matters: the lab's noise-free held-out prints with it vs without it
+        quiet = {"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}}
+        with_fx = Printer(load_config(overrides=_merge(over, quiet))["printer"], size, px)
+        without = Printer(load_config(overrides=_merge(random_effect_lab(np.random.default_rng(lab_seed), "none")[0], quiet))
+                          ["printer"], size, px)
+        a, _ = _lab_truth(with_fx, level, ho_masks, 0)
+        b, _ = _lab_truth(without, level, ho_masks, 0)
+        effect_iou = float(np.mean([metrics.iou(a[k], b[k]) for k in ho_masks]))
+        prints = _write_batch(d / "prints", trial, tr_prints, px)
+        write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"]))
+        t0 = time.perf_counter()
+        calibrate([prints], d / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False,
+                  **({"objective": args.objective} if args.objective else {}))
+        t_cal = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False,
+                     figures=False)
+        t_diag = time.perf_counter() - t0
+        eq1 = load_params(d / "cal" / "params.yaml")
+        sel = load_params(d / "diag" / "model.yaml")
+        ids = list(ho_masks)
+        arr = np.stack([ho_masks[k] for k in ids])
+        sim_eq1, sim_sel = simulate(eq1, arr), simulate(sel, arr)
+        for j, mid in enumerate(ids):
+            t = ho_prints[mid]
+            print_rows.append(dict(lab=li, effect=effect, id=mid, pattern=mid.split("_")[0] if mid.startswith("paper_")
+                                   else test_pattern_of(mid), printed_px=int(t.sum()), iou_eq1=metrics.iou(sim_eq1[j], t),
+                                   iou_selected=metrics.iou(sim_sel[j], t), iou_floor=metrics.iou(ho_floor[mid], t)))
+        rows = print_rows[-len(ids):]
+        pat = [x for x in rows if not x["id"].startswith("paper_")]
+        mean = lambda rs, k: float(np.mean([x[k] for x in rs]))  # noqa: E731
+        sig_lab = cfg["printer"]["kernel"]["sigma_um"] / px
+        v = verdict(effect, r["effects"], r["unexplained_residual"])
+        row = dict(lab=li, lab_seed=lab_seed, effect=effect, magnitude=mag, effect_iou=effect_iou, named=",".join(r["effects"]) or "-",
+                   unexplained=",".join(r["unexplained_diagnostics"]) if r["unexplained_residual"] else "-", verdict=v,
+                   iou_eq1=mean(rows, "iou_eq1"), iou_selected=mean(rows, "iou_selected"), iou_floor=mean(rows, "iou_floor"),
+                   patterns_iou_eq1=mean(pat, "iou_eq1"), patterns_iou_selected=mean(pat, "iou_selected"),
+                   patterns_iou_floor=mean(pat, "iou_floor"), sigma_lab_px=sig_lab, sigma_eq1_px=eq1.values["sigma_px"],
+                   sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
+                   T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1))
+        lab_rows.append(row)
+        line = (f"{li:<4}{effect:<19}{mag:<27}{1 - effect_iou:9.4f}  {row['named']:<32}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
+                f"{row['iou_eq1']:8.4f}{row['iou_selected']:7.4f}{row['iou_floor']:7.4f}{row['iou_floor'] - row['iou_selected']:+7.4f}"
+                f"{row['patterns_iou_eq1']:8.4f}{row['patterns_iou_selected']:8.4f}{row['patterns_iou_floor']:8.4f}"
+                f"{row['sigma_eq1_px'] / sig_lab:7.3f}/{row['sigma_selected_px'] / sig_lab:.3f}"
+                f"{row['T_eq1'] / row['T_lab']:5.2f}/{row['T_selected'] / row['T_lab']:.2f}{t_cal:5.0f}s{t_diag:5.0f}s")
+        lines.append(line)
+        print(line, flush=True)
+        write_tsv(root / "labs.tsv", lab_rows, list(row))
+        write_tsv(root / "prints.tsv", print_rows, list(print_rows[0]))
+    lines += ["", summary(lab_rows), "", f"command: {cmd}"]
+    text = "\n".join(lines) + "\n"
+    (root / "summary.txt").write_text(text)
+    print("\n" + summary(lab_rows))
+
+
+def summary(rows: list) -> str:
+    verdicts = ("right", "partial", "wrong", "missed", "false alarm")
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in verdicts}
+    gap_sel = [r["iou_floor"] - r["iou_selected"] for r in rows]
+    gap_eq1 = [r["iou_floor"] - r["iou_eq1"] for r in rows]
+    pgap = [r["patterns_iou_floor"] - r["patterns_iou_selected"] for r in rows]
+    plain = [r for r in rows if r["effect"] in ("none", "dose_nonlinearity", "illumination_field", "edge_offset", "hotspot")]
+    sig = [r["sigma_eq1_px"] / r["sigma_lab_px"] for r in plain]
+    sig_sel = [r["sigma_selected_px"] / r["sigma_lab_px"] for r in rows if r["effect"] != "heavy_tail"]
+    T = [r["T_selected"] / r["T_lab"] for r in rows if r["effect"] in ("none", "illumination_field", "hotspot", "anisotropy")]
+    out = [f"detection over {len(rows)} labs: " + ", ".join(f"{v} {n}" for v, n in counts.items()),
+           f"held-out IoU gap to the floor (floor - model), median [max]: Eq. 1 {np.median(gap_eq1):.4f} [{max(gap_eq1):.4f}], "
+           f"selected {np.median(gap_sel):.4f} [{max(gap_sel):.4f}]; test patterns only, selected {np.median(pgap):.4f}",
+           f"sigma fitted / lab: Eq. 1 on labs with a Gaussian core and no kernel effect, median {np.median(sig) if sig else float('nan'):.3f} "
+           f"(range {min(sig, default=float('nan')):.3f}..{max(sig, default=float('nan')):.3f}); selected model, all labs but heavy tail, "
+           f"median {np.median(sig_sel):.3f}",
+           f"T selected / lab (labs where T is identifiable: none, illumination, hotspot, anisotropy): median "
+           f"{np.median(T) if T else float('nan'):.3f}",
+           f"time per lab: calibration median {np.median([r['cal_s'] for r in rows]):.0f} s, diagnosis median "
+           f"{np.median([r['diag_s'] for r in rows]):.0f} s (max {max(r['diag_s'] for r in rows):.0f} s)"]
+    return "\n".join(out)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="256 x 256, 16 prints, diagnose(quick=True)")
     ap.add_argument("--scenarios", default=",".join(SCENARIOS), help="comma-separated scenario names")
     ap.add_argument("--size", type=int, default=None)
     ap.add_argument("--count", type=int, default=None)
-    ap.add_argument("--out", default=None, help="keep the outputs here (default: a temporary folder)")
+    ap.add_argument("--out", default=None, help="keep the outputs here (default: a temporary folder; random labs: "
+                    "benchmarks/out/diagnosis)")
+    ap.add_argument("--random-labs", type=int, default=0, metavar="N",
+                    help="N random labs (unscatter.lab.random_lab), one effect each, instead of the scenarios")
+    ap.add_argument("--seed", type=int, default=None, help="random labs: the seed (default: a new one, printed)")
+    ap.add_argument("--heldout", type=int, default=16, help="random labs: held-out paper masks and as many test patterns")
+    ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (calibration.OBJECTIVES; "
+                    "default: its default); the diagnosis uses the calibration's")
+    ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
+    ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)})")
     args = ap.parse_args()
+    if args.random_labs:
+        random_labs(args)
+        return
     size = args.size or (256 if args.quick else 512)
     count = args.count or (16 if args.quick else 32)
     root = Path(args.out or tempfile.mkdtemp(prefix="bench_diagnosis_"))

@@ -168,6 +168,65 @@ def test_unknown_setting_is_an_error(lab, tmp_path):
         calibrate([lab.dir8], tmp_path, populaton=3)
 
 
+def test_unknown_objective_is_an_error(lab, tmp_path):
+    with pytest.raises(ValueError, match="unknown objective 'iou'.*mismatch"):
+        calibrate([lab.dir8], tmp_path, objective="iou", **FAST)
+
+
+# ------------------------------------------------------------------ objectives
+
+
+def test_per_print_objectives_pixel_error_and_dice():
+    """The per-print objectives. pixel_error: the weighted mismatch equals the mean over prints of each
+    print's pixel error |measured XOR simulated| / max(|measured|, floor x pixels), so a
+    thin print weighs as much as a large one; the paper's mismatch weighs them equally
+    per pixel. Subsets (folds, bootstrap resamples) keep the weights. dice: 1 - Dice per
+    print."""
+    import torch
+
+    from unscatter.calibration import Objective, build_objective, per_print_error, print_weights
+    from unscatter.model import FixedMasks, get_model, masks_to_tensor
+
+    cpu = torch.device("cpu")
+    m = get_model("eq1")
+    masks = np.stack(list(trial_masks(6, seed=4, size=64).values()))
+    masks[5] = 0
+    masks[5, 30:34, 10:50] = 255  # a thin line: a small print
+    values = dict(c0=1.0, c1=-0.05, c2=0.0, c3=0.02, c4=0.0, sigma_px=1.5, T=0.5)
+    sim = FixedMasks(m, masks_to_tensor(masks, cpu), support_px=12)
+    with torch.no_grad():
+        measured = sim.prints(m.theta(values, cpu))[0].numpy()
+        other = m.theta(dict(values, sigma_px=2.2, T=0.45), cpu)
+        simulated = sim.prints(other)[0].numpy()
+    npx = measured[0].size
+    area = measured.reshape(6, -1).sum(axis=1)
+    assert area[5] < 0.25 * area[:5].mean() and area.min() > 0.02 * npx
+    w = print_weights(measured, "pixel_error", 0.02)
+    assert w.mean() == pytest.approx(1.0)
+    np.testing.assert_allclose(w * area, w[0] * area[0])  # inverse to the printed area
+    assert print_weights(measured, "pixel_error", 0.1)[5] == pytest.approx(print_weights(measured, "pixel_error", 0.1)[1])
+    np.testing.assert_array_equal(print_weights(measured, "mismatch"), np.ones(6))
+    xor = (measured != simulated).reshape(6, -1).sum(axis=1)
+    obj = Objective.build(sim, measured, 1, w)
+    # the mean pixel error over the mean of 1 / area (the weights are normalised)
+    assert obj.hard(other)[0] == pytest.approx(np.mean(xor / area) / np.mean(1 / area) / npx, rel=1e-5)
+    paper = Objective.build(sim, measured, 1)
+    assert paper.hard(other)[0] == pytest.approx(xor.mean() / npx, rel=1e-5)
+    sub = obj.subset([1, 5], [2.0, 1.0])
+    expect = np.average(xor[[1, 5]] / npx, weights=w[[1, 5]] * [2.0, 1.0])
+    assert sub.hard(other)[0] == pytest.approx(expect, rel=1e-5)
+    with pytest.raises(ValueError, match="unknown objective"):
+        print_weights(measured, "iou")
+    # 1 - Dice per print (IoU's twin), hard and smooth, and its per-print errors
+    dice = build_objective(sim, measured, 1, "dice", 0.02)
+    ssum = simulated.reshape(6, -1).sum(axis=1)
+    expect = xor / (area + ssum + 0.02 * npx)
+    assert dice.hard(other)[0] == pytest.approx(expect.mean(), rel=1e-5)
+    np.testing.assert_allclose(per_print_error(simulated, measured, "dice", 0.02), expect)
+    assert float(dice.smooth(other, 0.01)[0]) == pytest.approx(expect.mean(), rel=0.05)
+    assert float(dice.subset([1, 5]).hard(other)[0]) == pytest.approx(expect[[1, 5]].mean(), rel=1e-5)
+
+
 # ------------------------------------------------------------------ bad input
 
 

@@ -16,6 +16,11 @@ averaging among all 32 trial data pairs", with the hard threshold. Here:
    prints for the parameters' spread. Refits run a small GA in a box around the
    full-data optimum, then the refinement.
 
+The objective (setting ``objective``, ``OBJECTIVES``) is the paper's mean squared
+distance by default (``mismatch``); ``pixel_error`` weighs each print by the inverse of
+its printed area, so that the fit is scored per print as the prints are judged (IoU,
+pixel error) rather than per pixel, where large prints outweigh thin ones.
+
 Inputs are registration outputs (``<id>.png`` prints in mask coordinates, ``qc.tsv``,
 ``batch.yaml``); prints with status ok or empty are used, failed ones never.
 """
@@ -82,12 +87,64 @@ DEFAULTS = dict(
     # threads on 2 shared cores OpenMP spin-waits, measured 3.5x slower than 1 thread on a
     # busy machine. Results depend (slightly) on the thread count: part of the settings.
     threads=_D.threads,
+    # what the fit minimises (OBJECTIVES): "mismatch", the paper's mean squared distance,
+    # weighs each print by its area; "dice" (1 - Dice per print, IoU's twin) and
+    # "pixel_error" weigh each print as the scores of prints (IoU, pixel error) do
+    objective="mismatch",
+    area_floor=0.02,  # dice, pixel_error: a print's area counts as at least about this share of the field
 )
 
-OBJECTIVE = (
-    "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
-    "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"
-)
+OBJECTIVES = {
+    "mismatch": (
+        "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
+        "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"),
+    "dice": (
+        "mean over prints of |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels), hard "
+        "threshold, full resolution: 1 - Dice per print, a monotone function of each print's IoU (IoU = D / (2 - D)), "
+        "so the fit is scored as the prints are"),
+    "pixel_error": (
+        "mean over prints of |measured XOR simulated| / max(|measured|, area_floor x pixels), hard threshold, full "
+        "resolution: each print's pixel error (unscatter.metrics), so that a thin or small print weighs as much as a "
+        "large one (the paper's squared distance weighs prints by their area)"),
+}
+OBJECTIVE = OBJECTIVES["mismatch"]
+
+
+def build_objective(sim: FixedMasks, prints: np.ndarray, factor: int, objective: str = "mismatch",
+                    area_floor: float = 0.02) -> Objective:
+    """``Objective.build`` for one of ``OBJECTIVES``, on every ``factor``-th pixel."""
+    return Objective.build(sim, prints, factor, print_weights(prints, objective, area_floor),
+                           dice_floor=area_floor if objective == "dice" else None)
+
+
+def per_print_error(simulated: np.ndarray, measured: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02,
+                    weights=None) -> np.ndarray:
+    """Each print's share of the objective (its mean over prints is the objective):
+    mismatch, mismatch times ``weights`` (pixel_error: ``print_weights`` of all the
+    prints), or 1 - Dice."""
+    s, m = np.asarray(simulated, bool), np.asarray(measured, bool)
+    B = len(m)
+    xor = (s != m).reshape(B, -1).sum(axis=1).astype(np.float64)
+    npx = m[0].size if B else 1
+    if objective == "dice":
+        return xor / (s.reshape(B, -1).sum(axis=1) + m.reshape(B, -1).sum(axis=1) + area_floor * npx)
+    w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+    return xor / npx * w
+
+
+def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
+    """Per-print weights (mean 1) that make the weighted mean of per-print mismatch the
+    ``objective`` (``OBJECTIVES``): ones for the paper's mismatch, and for pixel_error
+    pixels / max(printed area, area_floor x pixels), normalised to mean 1."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}; known: {sorted(OBJECTIVES)}")
+    B = len(prints)
+    if objective in ("mismatch", "dice") or B == 0:
+        return np.ones(B)
+    npx = prints[0].size
+    area = np.asarray(prints, bool).reshape(B, -1).sum(axis=1)
+    w = npx / np.maximum(area, float(area_floor) * npx)
+    return w / w.mean()
 
 
 # ----------------------------------------------------------------------------- data
@@ -204,13 +261,20 @@ def band_factor(sim: FixedMasks, model, values: dict, fmax: int, tol: float = BA
 
 
 class Objective:
-    """Weighted mean over prints of mean((measured - simulated)^2) on one grid."""
+    """Weighted mean over prints of mean((measured - simulated)^2) on one grid; with
+    ``dice_floor`` (a share of the field) each print's |measured XOR simulated| /
+    (|measured| + |simulated| + dice_floor x pixels) instead, 1 - Dice."""
 
-    def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None):
+    def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None,
+                 dice_floor: float | None = None):
         self.sim = sim
         self.target = target  # (B, h, w) measured print (0/1) at the sim's sample points
         B = target.shape[0]
-        w = torch.ones(B) if weights is None else torch.as_tensor(np.asarray(weights, np.float32))
+        self.dice_floor = dice_floor
+        self.tsum = target.sum(dim=(1, 2))
+        self.floor_px = None if dice_floor is None else float(dice_floor) * target.shape[1] * target.shape[2]
+        self.raw_weights = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+        w = torch.as_tensor(self.raw_weights.astype(np.float32))
         self.weights = (w / w.sum()).to(target.device, torch.float32)
         npx = target.shape[1] * target.shape[2]
         # for a binary simulated print s: (t - s)^2 = t^2 + s (1 - 2 t), so one masked sum per print
@@ -224,19 +288,21 @@ class Objective:
         self.block = B if self.chunk * B * per <= 32e6 else max(1, int(16e6 // (self.chunk * per)))
 
     @classmethod
-    def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None):
+    def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None, dice_floor: float | None = None):
         """The objective on every ``factor``-th pixel of the full-resolution one.
 
         ``sim`` is the full-resolution evaluator of the prints' masks; the samples are
         exact dose values, so this is an unbiased subsample of the full objective.
         """
         target = torch.from_numpy(np.ascontiguousarray(prints[:, ::factor, ::factor], dtype=np.float32))
-        return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights)
+        return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights, dice_floor=dice_floor)
 
     def subset(self, idx, weights=None) -> Objective:
+        """The objective on prints ``idx``, their weights times ``weights`` (e.g. bootstrap counts)."""
         idx = np.asarray(idx)
         t = self.target[torch.as_tensor(idx, device=self.target.device)]
-        return Objective(self.sim.subset(idx), t, weights)
+        w = self.raw_weights[idx] * (1.0 if weights is None else np.asarray(weights, np.float64))
+        return Objective(self.sim.subset(idx), t, w, dice_floor=self.dice_floor)
 
     def per_print(self, theta) -> torch.Tensor:
         """(P, B) mean squared distance per print, hard threshold."""
@@ -250,8 +316,15 @@ class Objective:
                 for j in range(0, B, self.block):
                     sl = slice(j, j + self.block) if self.block < B else None
                     s = self.sim.prints(sub, masks=sl)
-                    parts.append(torch.where(s, self.gain[sl or slice(None)], 0.0).sum(dim=(2, 3)))
-                out.append(self.base[None] + torch.cat(parts, dim=1))
+                    sl = sl or slice(None)
+                    if self.floor_px is None:
+                        parts.append(self.base[sl][None] + torch.where(s, self.gain[sl], 0.0).sum(dim=(2, 3)))
+                    else:
+                        S = s.sum(dim=(2, 3)).to(torch.float32)
+                        inter = torch.where(s, self.target[sl], 0.0).sum(dim=(2, 3))
+                        t = self.tsum[sl][None]
+                        parts.append((t + S - 2 * inter) / (t + S + self.floor_px))
+                out.append(torch.cat(parts, dim=1))
         return torch.cat(out)
 
     def hard(self, theta) -> np.ndarray:
@@ -259,7 +332,10 @@ class Objective:
 
     def smooth(self, theta, temperature: float) -> torch.Tensor:
         s = self.sim.prints(theta, temperature)
-        return ((s - self.target[None]) ** 2).mean(dim=(2, 3)) @ self.weights
+        if self.floor_px is None:
+            return ((s - self.target[None]) ** 2).mean(dim=(2, 3)) @ self.weights
+        S, inter, t = s.sum(dim=(2, 3)), (s * self.target[None]).sum(dim=(2, 3)), self.tsum[None]
+        return ((t + S - 2 * inter) / (t + S + self.floor_px)) @ self.weights
 
 
 class Space:
@@ -375,7 +451,9 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             th[k] = free[i : i + 1]
         return {k: th[k] for k in model.names}
 
-    sig = space.names.index("sigma_px") if "sigma_px" in space.names else None
+    # kernel parameters stay within their bounds, where the evaluator's padding holds the kernel
+    # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1)
+    kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
     for temp in temperatures:
         opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
 
@@ -383,8 +461,8 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             opt.zero_grad()
             with torch.no_grad():  # stay where the evaluator's padding holds the kernel
                 u.clamp_(-0.5, 1.5)
-                if sig is not None:
-                    u[sig].clamp_(max=1.0)
+                for i in kern:
+                    u[i].clamp_(0.0, 1.0)
             loss = objective.smooth(theta_of(u), temp)[0]
             loss.backward()
             return loss
@@ -461,6 +539,8 @@ def calibrate(prints_dirs, out_dir, model: str = _D.model, seed: int = _D.seed, 
     checked = {k: CALIBRATION.check(k, v) for k, v in dict(settings, model=model, seed=seed).items()
                if k in CALIBRATION.settings and not (k == "threads" and v is None)}
     s = {**DEFAULTS, **settings, **checked}
+    if s["objective"] not in OBJECTIVES:
+        raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
     inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
     before = torch.get_num_threads()
     with output_dir(out_dir, command="calibrate", inputs=inputs) as tmp:
@@ -490,10 +570,9 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
 
     sim = FixedMasks(m, masks_to_tensor(data.masks, device), support_px=support)
     objs: dict[int, Objective] = {}
-
     def obj(f):
         if f not in objs:
-            objs[f] = Objective.build(sim, data.prints, f)
+            objs[f] = build_objective(sim, data.prints, f, s["objective"], s["area_floor"])
         return objs[f]
 
     full = obj(1)
@@ -552,7 +631,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         entries[k] = e
     fitted.info = dict(
         parameter_extras={k: e for k, e in entries.items() if e},
-        objective=dict(definition=OBJECTIVE, value=fit.objective, ga=fit.objective_ga, refinement_kept=fit.refined,
+        objective=dict(name=s["objective"], definition=OBJECTIVES[s["objective"]], area_floor=s["area_floor"], value=fit.objective, ga=fit.objective_ga, refinement_kept=fit.refined,
                        in_sample_iou_mean=float(np.mean([r["iou"] for r in per_print]))),
         data=dict(prints_dirs=[str(Path(d).resolve()) for d in data.prints_dirs], design_size=[H, W], prints=len(data),
                   ids=data.labels, empty=[lab for lab, st in zip(data.labels, data.status) if st == "empty"],
@@ -715,5 +794,5 @@ def simulate_dir(params_path, mask_dir, out_dir, device=None) -> list[Path]:
     return [Path(out_dir) / f"{mid}.png" for mid in masks]
 
 
-__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "Space", "run_ga", "refine", "fit_params", "cross_validate",
+__all__ = ["calibrate", "load_prints", "PrintSet", "Objective", "OBJECTIVES", "print_weights", "build_objective", "per_print_error", "Space", "run_ga", "refine", "fit_params", "cross_validate",
            "bootstrap", "residual_rgb", "fit_figure", "simulate_dir", "grid_factor", "band_factor"]

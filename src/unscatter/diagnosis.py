@@ -12,8 +12,12 @@ minus simulated print) carries what the model lacks. The loop here:
    field (DMD coordinates); vs edge orientation; the radially averaged amplitude
    spectrum of print vs mask (MTF-style ratio, measured / simulated); residual maps.
 3. **Model selection.** Every candidate effect of the library (``model.EFFECTS``) is
-   added to the current model and fitted per fold (small GA warm-started from the
-   current model's fold fit, then the gradient refinement: ``calibration.fit_params``).
+   added to the current model and fitted per fold, warm-started from the current
+   model's fold fit: first a multi-start over the effect's own parameters (``starts``
+   points spread over their bounds, each refined by a short L-BFGS run of all
+   parameters; at the neutral value the gradient may not reach an effect's other
+   parameters, e.g. a tail's length at zero tail), then a small GA around the best
+   start and the gradient refinement (``calibration.fit_params``).
    A candidate is accepted when the paired bootstrap over prints of the per-print
    held-out error difference has its 2.5 % quantile above 0 *and* the mean improvement
    is at least ``min_improvement`` of the current error; the best accepted candidate
@@ -26,8 +30,11 @@ minus simulated print) carries what the model lacks. The loop here:
    excess is at least ``structure_min``. Structure left after selection sets
    ``unexplained_residual: true`` and names the diagnostics.
 
-Held-out error is the mismatch: the fraction of pixels where measured and simulated
-prints differ (the calibration's objective on held-out prints).
+Held-out error is the calibration's objective on held-out prints (``objective``,
+``calibration.OBJECTIVES``): the mismatch, the fraction of pixels where measured and
+simulated prints differ (the paper's), or each print's pixel error (the mismatch over
+the measured print's area), which weighs thin and small prints as the scores do. The
+ranking's ``heldout_mismatch`` column holds that error.
 
 Outputs under ``out_dir``: ``model.yaml`` (the selected model's params, loadable by
 ``model.load_params``, plus ``effects`` and ``unexplained_residual``), ``ranking.tsv``,
@@ -53,7 +60,20 @@ from scipy import ndimage
 
 from . import metrics
 from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
-from .calibration import Objective, Space, band_factor, fit_params, grid_factor, load_prints, residual_rgb
+from .calibration import (
+    OBJECTIVES,
+    Objective,
+    Space,
+    band_factor,
+    build_objective,
+    fit_params,
+    grid_factor,
+    load_prints,
+    per_print_error,
+    print_weights,
+    refine,
+    residual_rgb,
+)
 from .io import InputError, output_dir, write_tsv
 from .settings import DIAGNOSIS
 from .model import (
@@ -83,6 +103,8 @@ DEFAULTS = dict(
     refine_size=128,
     temperatures=(0.1, 0.03),
     refine_iters=20,  # L-BFGS iterations per temperature: the refinement finds the effects (GA: the box)
+    starts=8,  # a candidate effect's parameters: refined starts spread over their bounds (0: none)
+    start_iters=8,  # L-BFGS iterations of each start (first temperature, GA sampling)
     bootstrap=2000,  # paired bootstrap replicates over prints
     min_improvement=0.03,  # accepted only if the mean held-out error drops by at least this share
     max_rounds=5,
@@ -101,11 +123,21 @@ DEFAULTS = dict(
     # measured on 2 shared cores, 24 prints of 512 x 512, one evaluation at every 2nd pixel took
     # 24-38 ms with 1 thread and 28-76 ms with 2, its gradient 53-81 ms vs 76-650 ms.
     threads=DIAGNOSIS.default.threads,
+    # the error every fit minimises and every model is scored by (calibration.OBJECTIVES);
+    # None: the base calibration's (params.yaml objective.name), else the paper's mismatch
+    objective=None,
+    area_floor=None,  # pixel_error's floor on the printed area (None: the calibration's, else 0.02)
 )
-QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000,
+QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000, starts=4,
              permutations=499)
 
-ERROR = "held-out mismatch: fraction of pixels where the measured and the simulated print differ"
+ERRORS = {
+    "mismatch": "held-out mismatch: fraction of pixels where the measured and the simulated print differ",
+    "dice": "held-out 1 - Dice per print: |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels)",
+    "pixel_error": ("held-out pixel error: pixels where the measured and the simulated print differ over the measured "
+                    "print's area (at least area_floor of the field), times the mean of that weight (calibration.OBJECTIVES)"),
+}
+ERROR = ERRORS["mismatch"]
 
 
 # ------------------------------------------------------------------------ fitting
@@ -122,28 +154,28 @@ class _Context:
         support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
         self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support)
         self._objs: dict[int, Objective] = {}
+        self.objective, self.area_floor = s["objective"], s["area_floor"]
+        self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
         H, W = data.masks.shape[1:]
         self.f_ga = grid_factor((H, W), s["ga_size"])
         self.f_ref = grid_factor((H, W), s["refine_size"]) if s["refine"] else None
 
     def obj(self, f: int) -> Objective:
         if f not in self._objs:
-            self._objs[f] = Objective.build(self.sim, self.data.prints, f)
+            self._objs[f] = build_objective(self.sim, self.data.prints, f, self.objective, self.area_floor)
         return self._objs[f]
 
     def fit(self, start: dict, idx, seed: int, s: dict, known: set, desc: str) -> dict:
-        """Fit on prints ``idx`` from ``start``: GA in a box (+- span around the known
-        parameters, full bounds for the others) with ``start`` in its population, then
-        the refinement; kept only where they lower the objective on the training prints."""
+        """Fit on prints ``idx`` from ``start``. Parameters not in ``known`` (a candidate
+        effect's) get a multi-start first: ``starts`` points spread over their bounds
+        (scrambled Sobol), each with the others at ``start``, each refined by a short
+        L-BFGS run that moves all parameters together; the best by the hard objective
+        becomes the centre. Then the GA in a box (+- span around the centre's known
+        parameters, full bounds for the others) with the centre and ``start`` in its
+        population, then the refinement; kept only where they lower the objective on
+        the training prints."""
         p = self.params.with_values(**{k: start[k] for k in self.params.values})
         full = Space(p)
-        lo, hi = full.lo.copy(), full.hi.copy()
-        for i, k in enumerate(full.names):
-            if k in known:
-                r = s["span"] * (hi[i] - lo[i])
-                c = min(max(start[k], lo[i]), hi[i])
-                lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
-        space = Space(p, lo, hi)
         cache: dict[int, Objective] = {}
         subset = idx is not None and len(idx) < len(self.data)
 
@@ -153,12 +185,42 @@ class _Context:
             return cache[f]
 
         f_ga = band_factor(self.sim, self.model, start, self.f_ga, 0.1)
-        f_ref = band_factor(self.sim, self.model, start, self.f_ref) if self.f_ref else None
-        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters")}, "progress": False}
+        new = [k for k in full.names if k not in known]
+        centre = dict(start)
+        if new and s["starts"] > 0:
+            centre = self._multistart(full, obj(f_ga), start, new, seed, s)
+        lo, hi = full.lo.copy(), full.hi.copy()
+        for i, k in enumerate(full.names):
+            if k in known:
+                r = s["span"] * (hi[i] - lo[i])
+                c = min(max(centre[k], lo[i]), hi[i])
+                lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
+        space = Space(p, lo, hi)
+        f_ref = band_factor(self.sim, self.model, centre, self.f_ref) if self.f_ref else None
+        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters", "objective", "area_floor")},
+                    "progress": False}
+        init = [space.encode(centre)] + ([space.encode(start)] if centre is not start else [])
         fit = fit_params(space, self.model, obj, f_ga, f_ref, 1, self.device, seed, settings, s["population"],
-                         s["generations"], init=[space.encode(start)], desc=desc, history=False)
+                         s["generations"], init=init, desc=desc, history=False)
         start_obj = float(obj(1).hard(self.model.theta(start, self.device))[0])
         return fit.values if fit.objective <= start_obj else dict(start)
+
+    def _multistart(self, full: Space, objective: Objective, start: dict, new: list, seed: int, s: dict) -> dict:
+        """The best of ``start`` and ``s['starts']`` refined starts spread over the bounds
+        of the parameters ``new`` (hard objective on ``objective``'s grid)."""
+        from scipy.stats import qmc
+
+        idx = [full.names.index(k) for k in new]
+        pts = qmc.Sobol(len(new), scramble=True, seed=np.random.default_rng([seed, 31])).random(int(s["starts"]))
+        tried = [dict(start)]
+        for u in pts:
+            st = dict(start)
+            for j, i in enumerate(idx):
+                st[full.names[i]] = float(full.lo[i] + u[j] * (full.hi[i] - full.lo[i]))
+            tried.append(refine(full, objective, self.model, st, self.device, s["temperatures"][:1], s["start_iters"]))
+        theta = self.model.theta({k: np.array([t[k] for t in tried]) for k in tried[0]}, self.device)
+        scores = objective.hard(theta)
+        return tried[int(np.argmin(scores))]
 
     def predict(self, values: dict, idx) -> np.ndarray:
         with torch.no_grad():
@@ -196,7 +258,7 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
         sims[test] = ctx.predict(v, test)
         if bar is not None:
             bar.update(1)
-    err = np.mean(sims != data.prints, axis=(1, 2))
+    err = per_print_error(sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights)
     _, effects = split_model_name(ctx.params.model)
     return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
 
@@ -552,6 +614,14 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         base_params = load_params(base_path)
     base = Params(base_params.model, dict(base_params.values), dict(base_params.bounds), tuple(base_params.fixed),
                   base_params.pixel_size_um or data.pixel_size_um, {})
+    recorded = (base_params.info or {}).get("objective") or {}
+    recorded = recorded if isinstance(recorded, dict) else {}
+    if s["objective"] is None:
+        s["objective"] = recorded.get("name") or "mismatch"
+    if s["area_floor"] is None:
+        s["area_floor"] = float(recorded.get("area_floor", CALIBRATION_DEFAULTS["area_floor"]))
+    if s["objective"] not in OBJECTIVES:
+        raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
     _, have = split_model_name(base.model)
     cands = list(effect_names() if candidates is None else candidates)
     bad = [c for c in cands if c not in EFFECTS]
@@ -674,7 +744,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         diagnosis=dict(
             base_model=base.model, base_params=str(base_path.resolve()) if base_path else None,
             prints_dirs=[str(Path(d).resolve()) for d in data.prints_dirs], prints=B, folds=len(folds), seed=seed,
-            candidates=cands, error=ERROR, heldout_before=before_m, heldout_after=after_m,
+            candidates=cands, objective=s["objective"], error=ERRORS[s["objective"]], heldout_before=before_m, heldout_after=after_m,
             improvement=stats_final, seconds=round(elapsed, 1),
             acceptance=(f"paired bootstrap over prints ({s['bootstrap']} replicates): 2.5 % quantile of the mean "
                         f"per-print improvement > 0 and mean improvement >= {s['min_improvement']:.0%} of the current error"),
