@@ -141,7 +141,7 @@ def test_package_defaults_follow_the_settings():
         assert getattr(Settings(), k) == getattr(S.REGISTRATION.default, k), k
     assert _default(calibration.calibrate, "model") == S.CALIBRATION.default.model
     assert _default(calibration.calibrate, "seed") == S.CALIBRATION.default.seed
-    for k in ("population", "generations", "folds", "bootstrap", "free_c0", "refine", "threads"):
+    for k in ("population", "generations", "folds", "bootstrap", "free_c0", "refine", "threads", "objective"):
         assert calibration.DEFAULTS[k] == getattr(S.CALIBRATION.default, k), k
     for k in ("folds", "seed", "quick"):
         assert _default(diagnosis.diagnose, k) == getattr(S.DIAGNOSIS.default, k), k
@@ -168,6 +168,9 @@ def test_model_and_effect_names_are_the_libraries():
 
     assert list(S.MODEL_NAMES) == model_names()
     assert list(S.EFFECT_NAMES) == effect_names()
+    from unscatter.calibration import OBJECTIVES
+
+    assert sorted(OBJECTIVES) == sorted(S.CALIBRATION["objective"].choices)
 
 
 def test_no_copied_default_literals():

@@ -90,7 +90,7 @@ DEFAULTS = dict(
     # what the fit minimises (OBJECTIVES): "mismatch", the paper's mean squared distance,
     # weighs each print by its area; "dice" (1 - Dice per print, IoU's twin) and
     # "pixel_error" weigh each print as the scores of prints (IoU, pixel error) do
-    objective="mismatch",
+    objective=_D.objective,
     area_floor=0.02,  # dice, pixel_error: a print's area counts as at least about this share of the field
 )
 

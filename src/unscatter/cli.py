@@ -253,12 +253,14 @@ def _bounds(ctx, param, value):
 @option(S.CALIBRATION, "generations")
 @click.option("--bounds", multiple=True, callback=_bounds, metavar="NAME=LO,HI", help="Search bounds of a parameter (repeatable).")
 @option(S.CALIBRATION, "free_c0")
+@option(S.CALIBRATION, "objective")
 @option(S.CALIBRATION, "refine")
 @option(S.CALIBRATION, "folds")
 @option(S.CALIBRATION, "bootstrap")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 @option(S.CALIBRATION, "threads")
-def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, refine, folds, bootstrap, device, threads):
+def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, objective, refine, folds,
+                  bootstrap, device, threads):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
 
@@ -273,8 +275,8 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
     with warnings.catch_warnings():  # the flags are echoed below, once, without a source line
         warnings.simplefilter("ignore", UserWarning)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
-                      bounds=bounds, free_c0=free_c0, refine=refine, folds=folds, bootstrap=bootstrap, device=device,
-                      threads=threads)
+                      bounds=bounds, free_c0=free_c0, objective=objective, refine=refine, folds=folds,
+                      bootstrap=bootstrap, device=device, threads=threads)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""

@@ -300,6 +300,11 @@ CALIBRATION = Stage(
     bootstrap=_int(20, "Bootstrap replicates over prints for the parameters' spread (0 - none).", lo=0),
     free_c0=_bool(False, "Fit c0 as well (the paper's 7 parameters). Eq. 1 is unchanged when c and T are scaled "
                   "together, so by default c0 = 1 fixes that gauge."),
+    objective=_choice("mismatch", ("mismatch", "pixel_error", "dice"),
+                      "What the fit minimises (unscatter.calibration.OBJECTIVES): mismatch - the paper's mean squared "
+                      "difference over all pixels (prints weigh by their area); pixel_error - each print's pixel error; "
+                      "dice - 1 - Dice per print (IoU's twin). The diagnosis scores held-out prints with the same one. "
+                      "On random labs mismatch named the effects as well or better (benchmarks/bench_diagnosis.py)."),
     refine=_bool(True, "Gradient refinement (L-BFGS on a smooth threshold) after the GA.", workflow=False),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
 )

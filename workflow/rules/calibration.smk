@@ -16,6 +16,7 @@ rule calibrate:
         folds=config["calibration"]["folds"],
         bootstrap=config["calibration"]["bootstrap"],
         free_c0=config["calibration"]["free_c0"],
+        objective=config["calibration"]["objective"],
         code=code_version("calibration", "model", "io", "metrics"),
     threads: 2
     resources:

@@ -18,6 +18,7 @@ def main(snakemake):
         folds=p.folds,
         bootstrap=p.bootstrap,
         free_c0=p.free_c0,
+        objective=p.objective,
         progress=False,
     )
     for w in params.info.get("warnings", []):
