@@ -27,7 +27,7 @@ for some runs, so CPU seconds are given where wall time is not comparable):
   master's forward at 512 x 512 with the paper's width 64, 0.39 s.
 
 Outputs go to benchmarks/out/training/. Without --dataset a dataset of the preset's size
-(training.PRESET_PAIRS) is simulated from a plausible calibrated Eq. 1 (see
+(settings.PRESET_PAIRS) is simulated from a plausible calibrated Eq. 1 (see
 bench_augment.py). CPU time is printed next to wall time: on a machine shared with other
 jobs, wall time stretches.
 """
@@ -111,7 +111,8 @@ def steps(a):
 
 
 def run_preset(a):
-    from unscatter.training import PRESET_PAIRS, settings_for, train
+    from unscatter.settings import PRESET_PAIRS
+    from unscatter.training import settings_for, train
 
     ds = a.dataset or _dataset(PRESET_PAIRS[a.name], f"data_{a.name}")
     settings = json.loads(a.settings) if a.settings else {}

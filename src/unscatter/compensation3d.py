@@ -200,9 +200,6 @@ def compensate3d_designs(designs, out_dir, params, depth_path, names=None, **set
 
 
 # ---------------------------------------------------------------------- benchmark
-METHODS3D = ("ilt", "identical")
-
-
 def _designs3d(designs, names=None) -> dict:
     """name -> (L, H, W) bool of a folder of 3-D designs, or of one design's folder."""
     designs = Path(designs)

@@ -383,10 +383,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
         fitted = load_params(model)
         if Path(model).is_dir():
             focus_effects = undecided_effects(model)
-    params = full_params(fitted)
-    if fitted is not None:  # the full model at the fit's values, the bounds of its fit
-        params = Params(params.model, {**params.values, **{k: v for k, v in fitted.values.items() if k in params.values}},
-                        params.bounds, params.fixed, fitted.pixel_size_um, {})
+    params = full_params(fitted)  # the fit's values and bounds, the effects it lacks at their neutral values
     names = params.free
     U, sd0 = design_prior(params, draws, seed, fitted)
     prior_precision = np.diag(1.0 / sd0 ** 2)

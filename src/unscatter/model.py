@@ -1209,11 +1209,6 @@ DEPTH_PARAMS = (
 DEPTH_CUTOFF = 1e-4  # the padding covers the scatter down to where exp(-depth / att_length) is this small
 
 
-def depth_defaults() -> dict:
-    """Default values of the depth parameters (``DEPTH_PARAMS``)."""
-    return {p.name: float(p.default) for p in DEPTH_PARAMS}
-
-
 def _depth_tensor(depth: dict, name: str, P: int, device) -> torch.Tensor:
     v = depth[name]
     t = v if isinstance(v, torch.Tensor) else torch.as_tensor(np.atleast_1d(np.asarray(v, dtype=np.float64)))

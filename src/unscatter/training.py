@@ -46,7 +46,7 @@ import torch.nn.functional as F
 
 from . import __version__, metrics
 from .io import InputError, claim_output_dir, write_tsv
-from .settings import PRESET_PAIRS, TRAINING
+from .settings import TRAINING
 
 log = logging.getLogger(__name__)
 
