@@ -97,35 +97,42 @@ def read_stack(path: Path) -> np.ndarray:
     return a.astype(np.float32)
 
 
+def layer_weights(bottoms_um, sigma_um: float, z_um: np.ndarray, layers: int, layer_um: float) -> np.ndarray:
+    """(..., Nz, L) share of a Gaussian axial response of ``sigma_um`` at depths ``z_um``
+    that falls in each layer, for a print whose bottom is at ``bottoms_um`` (a number or
+    an array: one weight matrix per bottom)."""
+    lo = np.asarray(bottoms_um, float)[..., None, None] + np.arange(layers) * layer_um
+    z = np.asarray(z_um, float)[:, None]
+    return ndtr((lo + layer_um - z) / sigma_um) - ndtr((lo - z) / sigma_um)
+
+
 def axial_profile(bottom_um: float, sigma_um: float, z_um: np.ndarray, area: np.ndarray, layer_um: float) -> np.ndarray:
     """Predicted axial signal at depths ``z_um``: each layer's solid share ``area`` seen
     through a Gaussian axial response of ``sigma_um`` integrated over the layer."""
-    lo = bottom_um + np.arange(len(area)) * layer_um
-    z = np.asarray(z_um, float)[:, None]
-    w = ndtr((lo[None] + layer_um - z) / sigma_um) - ndtr((lo[None] - z) / sigma_um)
-    return w @ area
+    return layer_weights(bottom_um, sigma_um, z_um, len(area), layer_um) @ area
 
 
 def fit_axial(profile: np.ndarray, z_um: np.ndarray, area: np.ndarray, layer_um: float) -> dict:
     """Bottom position, axial width and signal fall-off with depth that explain the
-    profile best (grid search, a linear gain and offset at each point): bottom_um,
-    axial_sigma_um, falloff_um (the signal falls as exp(-z / falloff_um) through the
-    stack; inf: it does not), r2."""
+    profile best (grid search, a linear gain and offset at each point, all bottoms of a
+    grid row at once in closed form): bottom_um, axial_sigma_um, falloff_um (the signal
+    falls as exp(-z / falloff_um) through the stack; inf: it does not), r2."""
     best = None
-    var = float(((profile - profile.mean()) ** 2).sum())
+    pc = profile - profile.mean()
+    var = float((pc**2).sum())
     bottoms = np.arange(z_um[0] - 2 * layer_um, z_um[-1] + 1e-9, max(0.5, (z_um[1] - z_um[0]) / 4))
     for fall in FALLOFFS_UM:
         dim = np.exp(-(z_um - z_um[0]) / fall)
         for sig in AXIAL_SIGMAS_UM:
-            for b in bottoms:
-                q = axial_profile(b, sig, z_um, area, layer_um) * dim
-                A = np.stack([q, np.ones_like(q)], 1)
-                coef, *_ = np.linalg.lstsq(A, profile, rcond=None)
-                if coef[0] <= 0:
-                    continue
-                res = float(((A @ coef - profile) ** 2).sum())
-                if best is None or res < best[0]:
-                    best = (res, float(b), float(sig), float(fall))
+            Q = (layer_weights(bottoms, sig, z_um, len(area), layer_um) @ area) * dim  # (bottoms, Nz)
+            qc = Q - Q.mean(axis=1, keepdims=True)
+            sqq = (qc**2).sum(axis=1)
+            sqp = qc @ pc
+            with np.errstate(divide="ignore", invalid="ignore"):
+                res = np.where((sqq > 0) & (sqp > 0), var - sqp**2 / sqq, np.inf)  # gain > 0 only
+            k = int(np.argmin(res))
+            if np.isfinite(res[k]) and (best is None or res[k] < best[0]):
+                best = (float(res[k]), float(bottoms[k]), float(sig), float(fall))
     if best is None:
         return dict(bottom_um=float("nan"), axial_sigma_um=float("nan"), falloff_um=float("inf"), r2=0.0, model_r2=0.0)
     out = dict(bottom_um=best[1], axial_sigma_um=best[2], falloff_um=best[3],
@@ -143,9 +150,7 @@ def _fit_free_layers(profile: np.ndarray, z_um: np.ndarray, layers: int, layer_u
 
     best = None
     for sig in AXIAL_SIGMAS_UM:
-        for b in bottoms:
-            lo = b + np.arange(layers) * layer_um
-            W = ndtr((lo[None] + layer_um - z_um[:, None]) / sig) - ndtr((lo[None] - z_um[:, None]) / sig)
+        for b, W in zip(bottoms, layer_weights(bottoms, sig, z_um, layers, layer_um)):
             A = np.hstack([W, np.ones((len(z_um), 1)), -np.ones((len(z_um), 1))])  # offset of either sign
             coef, res = nnls(A, profile)
             if best is None or res < best[0]:
