@@ -222,7 +222,7 @@ def write_job3d(designs, compensated, params, depth_path, out_dir, names=None) -
     masks) and masks/<design>__identical/ (the design at the model's best uniform dose),
     job.tsv and a batch.yaml to complete (layer_um from the depth file). ``names``: the
     designs (default: every design compensated)."""
-    from .io import output_dir, write_png, write_tsv, write_yaml
+    from .io import output_dir, read_tsv, write_png, write_tsv, write_yaml
     from .settings import PAPER_PIXEL_SIZE_UM
 
     if not names:  # the designs that were compensated
@@ -231,13 +231,16 @@ def write_job3d(designs, compensated, params, depth_path, out_dir, names=None) -
     depth = load_depth(depth_path)
     p = load_params(params)
     px = float(p.pixel_size_um or PAPER_PIXEL_SIZE_UM)
+    table = Path(compensated) / "compensation3d.tsv"
+    known = {r["design"]: r["identical_best_dose"] for r in read_tsv(table)} if table.is_file() else {}
     rows = []
     with output_dir(out_dir, command="benchmark3d job", inputs=[designs, compensated, params, depth_path]) as tmp:
         for name, d in ds.items():
             files = sorted((Path(compensated) / name).glob("*.png"))
             if len(files) != len(d):
                 raise InputError(Path(compensated) / name, f"{len(files)} layer masks for a design of {len(d)} layers")
-            dose, model_iou = best_uniform_dose(d, p, depth, px)
+            # the dose compensate3d found for the same model, else found here
+            dose = float(known[name]) if name in known else best_uniform_dose(d, p, depth, px)[0]
             for j, f in enumerate(files):
                 write_png(tmp / "masks" / f"{name}__ilt" / f"{j:03d}.png", read_mask(f))
                 write_png(tmp / "masks" / f"{name}__identical" / f"{j:03d}.png", (d[j] * round(255 * dose)).astype(np.uint8))
