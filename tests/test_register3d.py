@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import tifffile
@@ -56,8 +58,6 @@ def test_stacks_register_or_fail_never_silently_wrong(batch, tmp_path):
 
 
 def test_bad_stack_batches_are_clear_errors(batch, tmp_path):
-    import shutil
-
     root, ms = batch
     b = tmp_path / "b"
     shutil.copytree(root / "batch", b)
@@ -95,6 +95,18 @@ def test_registered_stacks_calibrate_and_score(batch, tmp_path):
     for mid, m in ms.items():
         for j, layer in enumerate(m):
             write_png(tmp_path / "designs" / mid / f"{j:03d}.png", layer > 0)
+    # two registered batches calibrate together, their prints named by batch; the spread
+    # comes from the bootstrap; a batch of another layer thickness is refused
+    shutil.copytree(tmp_path / "reg", tmp_path / "reg2")
+    r2 = calibrate3d([tmp_path / "reg", tmp_path / "reg2"], tmp_path / "p.yaml", tmp_path / "cal2", steps=4, bootstrap=2)
+    assert r2["prints"] == 2 * r["prints"] and r2["bootstrap"] == 2 and set(r2["spread"]) == set(r2["values"])
+    fit = (tmp_path / "cal2" / "fit.tsv").read_text()
+    assert "reg:" in fit and "reg2:" in fit and (tmp_path / "cal2" / "bootstrap.tsv").is_file()
+    meta = yaml.safe_load((tmp_path / "reg2" / "batch.yaml").read_text())
+    (tmp_path / "reg2" / "batch.yaml").write_text(yaml.safe_dump(dict(meta, layer_um=25)))
+    with pytest.raises(InputError, match="layer_um 25 and pixel_size_um"):
+        calibrate3d([tmp_path / "reg", tmp_path / "reg2"], tmp_path / "p.yaml", tmp_path / "cal3", steps=2)
+    assert not (tmp_path / "cal3").exists()
     rows = score3d_batch(tmp_path / "reg", tmp_path / "designs", tmp_path / "scores")
     assert {r["id"] for r in rows} == set(ms)
     assert all(0.5 < r["iou"] <= 1 for r in rows if r["status"] == "ok")

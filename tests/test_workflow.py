@@ -176,12 +176,60 @@ def test_layers_run_plans_the_3d_stages(tmp_path):
     assert not set(LAYERS_JOBS) & set(planned(configs=[off]))
 
 
-def test_layers_run_needs_the_virtual_lab(tmp_path):
+def fake_batch3d(root: Path, name: str, n: int = 2, layers: int = 3) -> Path:
+    """A small multi-layer batch: batch.yaml with layer_um and z_step_um, masks/<id>/NNN.png,
+    images/<id>.tif (a z-stack)."""
+    batch = fake_batch(root, name, n)
+    meta = yaml.safe_load((batch / "batch.yaml").read_text())
+    (batch / "batch.yaml").write_text(yaml.safe_dump(dict(meta, layer_um=50, z_step_um=25)))
+    for i in range(n):
+        flat = batch / "masks" / f"p{i}.png"
+        (batch / "masks" / f"p{i}").mkdir()
+        for j in range(layers):
+            (batch / "masks" / f"p{i}" / f"{j:03d}.png").write_bytes(flat.read_bytes())
+        flat.unlink()
+    past = 1_000_000_000
+    for p in [batch, *batch.rglob("*")]:
+        os.utime(p, (past, past))
+    return batch
+
+
+def test_measured_3d_batches_are_registered_and_calibrated(tmp_path):
+    """source: batches with layers.run - the measured 3-D trial batches are registered and
+    calibrated on; the benchmark's print job is written, and scored once its printed batch
+    is given, never calibrated on."""
     batch = fake_batch(tmp_path, "session1")
+    t1, t2, bench = (fake_batch3d(tmp_path, n) for n in ("stacks1", "stacks2", "bench3d"))
+    base = dict(results=str(tmp_path / "results"), source="batches", batches=[str(batch)])
+    cfg = write_config(tmp_path / "c.yaml", **base, layers={"run": True, "batches": [str(t1), str(t2)]})
+    jobs = planned(configs=[cfg])
+    layers = sorted(j for j in jobs if j[0] in {name for name, _ in LAYERS_JOBS})
+    assert layers == [("benchmark3d_job", ""), ("calibrate3d", ""), ("compensate3d", ""), ("register3d", "b3=stacks1"),
+                      ("register3d", "b3=stacks2")]
+    cfg = write_config(tmp_path / "c.yaml", **base,
+                       layers={"run": True, "batches": [str(t1)], "benchmark_batch": str(bench)})
+    jobs = planned(configs=[cfg])
+    assert ("benchmark3d_score", "") in jobs and ("register3d", "b3=bench3d") in jobs
+    assert not [j for j in jobs if j[0] in ("virtual_lab3d", "trial_masks3d")]
+    out = snakemake("--dry-run", "--printshellcmds", "--forceall", "--rerun-triggers", "mtime", configs=[cfg]).stdout
+    calib = out[out.index("rule calibrate3d:"):]
+    calib = calib[:calib.index("\n\n")]
+    assert "layers/prints/stacks1" in calib and "bench3d" not in calib
+
+
+@pytest.mark.parametrize("layers, message", [
+    ({"run": True}, "layers.run with source 'batches' needs layers.batches"),
+    ({"run": True, "batches": ["STACKS"], "benchmark_batch": "STACKS"}, "never calibrated on"),
+    ({"run": True, "batches": ["MISSING"]}, "lacks batch.yaml"),
+])
+def test_measured_3d_batches_fail_clearly(tmp_path, layers, message):
+    batch, stacks = fake_batch(tmp_path, "session1"), fake_batch3d(tmp_path, "stacks1")
+    layers = {k: ([str(stacks) if e == "STACKS" else str(tmp_path / "missing") for e in v] if k == "batches" else
+                  str(stacks) if v == "STACKS" else v) for k, v in layers.items()}
     cfg = write_config(tmp_path / "c.yaml", results=str(tmp_path / "results"), source="batches", batches=[str(batch)],
-                       layers={"run": True})
+                       layers=layers)
     proc = snakemake("--dry-run", configs=[cfg], check=False)
-    assert proc.returncode != 0 and "layers.run needs source: lab" in proc.stdout
+    assert proc.returncode != 0 and message in proc.stdout, proc.stdout[-2000:]
 
 
 def test_slurm_profile_dry_run(tmp_path):

@@ -114,18 +114,23 @@ def _bounds(params: Params, names):
 
 
 def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_size_um: float,
-              free2d=(), steps: int = 120, temperatures=(0.15, 0.03), starts=STARTS_UM, device=None) -> dict:
+              free2d=(), steps: int = 120, temperatures=(0.15, 0.03), starts=STARTS_UM, device=None,
+              weights=None, init=None) -> dict:
     """Fit the depth parameters (and the 2-D parameters named in ``free2d``) to voxel
     prints. ``masks``: list of (L, H, W) uint8 layer masks; ``prints``: list of (L, H, W)
-    bool voxel prints. Returns a dict: values (the fitted parameters), objective (the
-    hard-threshold mean squared difference), seconds, starts (objective per start)."""
+    bool voxel prints; ``weights``: a weight per print (a bootstrap's counts), default 1.
+    One Adam run per start of the attenuation length in ``starts``, or one run from
+    ``init`` (a fit's ``u``: a warm start). Returns a dict: values (the fitted
+    parameters), u (their unconstrained form), objective (the hard-threshold mean squared
+    difference), seconds, starts (objective per start)."""
     dev = torch.device(device) if device else default_device()
     model = params.build()
     names = ["att_length_um", "diffusion_um", *free2d]
     B = _bounds(params, names)
     Ms = [torch.from_numpy(np.asarray(m, np.float32) / 255.0).to(dev) for m in masks]
     Ys = [torch.from_numpy(np.asarray(p, np.float32)).to(dev) for p in prints]
-    n_vox = sum(int(y.numel()) for y in Ys)
+    W = [1.0] * len(Ys) if weights is None else [float(w) for w in weights]
+    n_vox = sum(w * int(y.numel()) for w, y in zip(W, Ys))
     t0 = time.perf_counter()
 
     def unpack(u):
@@ -138,21 +143,25 @@ def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_
     def objective(u, temperature):
         depth, theta, _ = unpack(u)
         total = 0.0
-        for m, y in zip(Ms, Ys):
+        for m, y, w in zip(Ms, Ys, W):
+            if w == 0:
+                continue
             dose = layer_dose(model, m, theta, depth, layer_um, pixel_size_um)[0]
             p = model.threshold.apply(dose, theta, temperature)
-            total = total + ((p.float() - y) ** 2).sum()
+            total = total + w * ((p.float() - y) ** 2).sum()
         return total / n_vox
 
     def logit(v, lo, hi):
         f = min(max((v - lo) / (hi - lo), 1e-4), 1 - 1e-4)
         return math.log(f / (1 - f))
 
+    inits = [[logit(att0, *B[0]), logit(2.0, *B[1])] + [logit(float(params.values[k]), *B[2 + i])
+                                                        for i, k in enumerate(free2d)] for att0 in starts]
+    if init is not None:
+        inits = [list(np.asarray(init, np.float64))]
     results = []
-    for att0 in starts:
-        init = [logit(att0, *B[0]), logit(2.0, *B[1])] + [logit(float(params.values[k]), *B[2 + i])
-                                                          for i, k in enumerate(free2d)]
-        u = torch.tensor(init, dtype=torch.float32, requires_grad=True)
+    for start in inits:
+        u = torch.tensor(start, dtype=torch.float32, requires_grad=True)
         opt = torch.optim.Adam([u], lr=0.1)
         for s in range(steps):
             t = temperatures[0] * (temperatures[1] / temperatures[0]) ** (s / max(steps - 1, 1))
@@ -167,7 +176,8 @@ def fit_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_
     with torch.no_grad():
         _, _, x = unpack(best[1])
     values = {k: float(x[i]) for i, k in enumerate(names)}
-    return dict(values=values, objective=best[0], starts=[r[0] for r in results], seconds=time.perf_counter() - t0)
+    return dict(values=values, u=best[1].numpy().tolist(), objective=best[0], starts=[r[0] for r in results],
+                seconds=time.perf_counter() - t0)
 
 
 def voxel_prints(masks: list, params: Params, depth: dict, layer_um: float, pixel_size_um: float, device=None) -> list:
@@ -214,48 +224,101 @@ def load_voxel_prints(prints_dir) -> tuple[dict, dict, dict]:
     return masks, prints, meta
 
 
-def calibrate3d(prints_dir, params_path, out_dir, free2d=("sigma_px", "T"), holdout: float = 1 / 3, seed: int = 0,
-                steps: int = 80) -> dict:
-    """Fit the depth parameters (and ``free2d``) to registered voxel prints, the 2-D model
-    from ``params_path``. A share ``holdout`` of the prints is kept out of the fit and
-    scored (voxel IoU, the fitted model against the measured print). Writes into
-    ``out_dir``: params.yaml (the 2-D model with the jointly fitted values), depth.yaml
-    (att_length_um, diffusion_um, layer_um), fit.tsv (per print: fit or held-out, voxel IoU) and
-    summary.yaml. Returns the summary."""
+def load_voxel_batches(prints_dirs, pixel_size_um=None) -> tuple[dict, dict, float, float]:
+    """(layer masks, voxel prints, layer_um, pixel_size_um) of the usable prints of one or
+    several z-stack registrations. With several, an id is ``<batch folder>:<id>``. The
+    batches must share the layer thickness and the DMD pixel size (``pixel_size_um``:
+    the model's, used where a batch.yaml gives none): a model has one of each."""
     from pathlib import Path
 
-    from .io import InputError, output_dir, write_tsv, write_yaml
+    from .io import InputError
+
+    dirs = [Path(prints_dirs)] if isinstance(prints_dirs, (str, Path)) else [Path(d) for d in prints_dirs]
+    if not dirs:
+        raise ValueError("no registered 3-D batches given")
+    masks, prints, geometry = {}, {}, None
+    for d in dirs:
+        m, p, meta = load_voxel_prints(d)
+        px = float(meta.get("pixel_size_um") or pixel_size_um or 0)
+        dz = meta.get("layer_um")
+        if not px > 0 or not isinstance(dz, (int, float)) or not dz > 0:
+            raise InputError(d / "batch.yaml", "needs pixel_size_um and layer_um (positive numbers)")
+        if geometry is None:
+            geometry = (float(dz), px, d)
+        elif not (math.isclose(dz, geometry[0], rel_tol=1e-6) and math.isclose(px, geometry[1], rel_tol=1e-6)):
+            raise InputError(d / "batch.yaml", f"layer_um {dz:g} and pixel_size_um {px:g} differ from "
+                             f"{geometry[2] / 'batch.yaml'} ({geometry[0]:g}, {geometry[1]:g}); calibrate batches of "
+                             "one layer thickness and pixel size together")
+        key = (lambda k: f"{d.name}:{k}") if len(dirs) > 1 else (lambda k: k)
+        for k in p:
+            masks[key(k)], prints[key(k)] = m[k], p[k]
+    return masks, prints, geometry[0], geometry[1]
+
+
+def bootstrap_depth(masks: list, prints: list, params: Params, layer_um: float, pixel_size_um: float, fit: dict,
+                    free2d=(), replicates: int = 8, steps: int = 40, seed: int = 0) -> list[dict]:
+    """The depth fit redone on ``replicates`` resamples of the prints (with replacement),
+    each warm-started from ``fit`` (fit_depth's result) at the fit's final temperature:
+    the fitted values of each replicate."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(replicates):
+        counts = np.bincount(rng.integers(0, len(prints), len(prints)), minlength=len(prints))
+        r = fit_depth(masks, prints, params, layer_um, pixel_size_um, free2d=free2d, steps=steps,
+                      temperatures=(0.05, 0.03), init=fit["u"], weights=counts)
+        out.append(r["values"])
+    return out
+
+
+def calibrate3d(prints_dirs, params_path, out_dir, free2d=("sigma_px", "T"), holdout: float = 1 / 3, seed: int = 0,
+                steps: int = 80, bootstrap: int = 8) -> dict:
+    """Fit the depth parameters (and ``free2d``) to registered voxel prints (one or
+    several registered batches), the 2-D model from ``params_path``. A share ``holdout``
+    of the prints is kept out of the fit and scored (voxel IoU, the fitted model against
+    the measured print); ``bootstrap`` resamples of the fitted prints give the
+    parameters' spread (their standard deviation). Writes into ``out_dir``: params.yaml
+    (the 2-D model with the jointly fitted values), depth.yaml (att_length_um,
+    diffusion_um, layer_um), fit.tsv (per print: fit or held-out, voxel IoU),
+    bootstrap.tsv (the replicates' values) and summary.yaml. Returns the summary."""
+    from pathlib import Path
+
+    from .io import output_dir, write_tsv, write_yaml
     from .metrics import iou
     from .model import load_params, save_params
 
-    masks, prints, meta = load_voxel_prints(prints_dir)
     base = load_params(params_path)
-    px = float(meta.get("pixel_size_um") or base.pixel_size_um or 0)
-    dz = meta.get("layer_um")
-    if not px > 0 or not isinstance(dz, (int, float)):
-        raise InputError(Path(prints_dir) / "batch.yaml", "needs pixel_size_um and layer_um")
+    masks, prints, dz, px = load_voxel_batches(prints_dirs, base.pixel_size_um)
     ids = sorted(prints)
     rng = np.random.default_rng(seed)
     order = list(rng.permutation(len(ids)))
     n_hold = int(round(holdout * len(ids))) if len(ids) >= 3 else 0
     held = {ids[i] for i in order[:n_hold]}
     fit_ids = [k for k in ids if k not in held]
-    r = fit_depth([masks[k] for k in fit_ids], [prints[k] for k in fit_ids], base, float(dz), px, free2d=tuple(free2d),
-                  steps=steps)
+    fit_masks, fit_prints = [masks[k] for k in fit_ids], [prints[k] for k in fit_ids]
+    r = fit_depth(fit_masks, fit_prints, base, float(dz), px, free2d=tuple(free2d), steps=steps)
     v = r["values"]
+    t0 = time.perf_counter()
+    boot = bootstrap_depth(fit_masks, fit_prints, base, float(dz), px, r, free2d=tuple(free2d), replicates=bootstrap,
+                           seed=seed) if bootstrap and len(fit_ids) > 1 else []
+    spread = {k: float(np.std([b[k] for b in boot], ddof=1)) for k in v} if len(boot) > 1 else None
     params = base.with_values(**{k: v[k] for k in free2d})
     depth = dict(att_length_um=v["att_length_um"], diffusion_um=v["diffusion_um"], layer_um=float(dz))
     sims = voxel_prints([masks[k] for k in ids], params, depth, float(dz), px)
     rows = [dict(id=k, use="held-out" if k in held else "fit", voxel_iou=round(iou(s, prints[k]), 5))
             for k, s in zip(ids, sims)]
     h = [row["voxel_iou"] for row in rows if row["use"] == "held-out"]
-    summary = dict(values=v, objective=r["objective"], starts=r["starts"], seconds=round(r["seconds"], 1),
+    summary = dict(values=v, spread=spread, bootstrap=len(boot), objective=r["objective"], starts=r["starts"],
+                   seconds=round(r["seconds"], 1), bootstrap_seconds=round(time.perf_counter() - t0, 1),
                    prints=len(ids), held_out=len(h), heldout_voxel_iou=float(np.mean(h)) if h else None,
                    fit_voxel_iou=float(np.mean([row["voxel_iou"] for row in rows if row["use"] == "fit"])))
-    with output_dir(out_dir, command="calibrate3d", inputs=[prints_dir, params_path]) as tmp:
-        save_params(tmp / "params.yaml", params, depth_fit=dict(free=list(free2d), source=str(prints_dir)))
+    sources = [str(d) for d in ([prints_dirs] if isinstance(prints_dirs, (str, Path)) else prints_dirs)]
+    with output_dir(out_dir, command="calibrate3d", inputs=[*sources, params_path]) as tmp:
+        save_params(tmp / "params.yaml", params, depth_fit=dict(free=list(free2d), source=sources))
         write_yaml(tmp / "depth.yaml", depth)
         write_tsv(tmp / "fit.tsv", rows)
+        if boot:
+            write_tsv(tmp / "bootstrap.tsv", [dict(replicate=i, **{k: round(x, 6) for k, x in b.items()})
+                                              for i, b in enumerate(boot)])
         write_yaml(tmp / "summary.yaml", summary)
     return summary
 

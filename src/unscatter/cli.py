@@ -287,14 +287,16 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
 
 
 @main.command("calibrate3d")
-@click.argument("prints_dir", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.argument("prints_dirs", nargs=-1, required=True, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True,
               help="The calibrated 2-D model (params.yaml, or its calibration or diagnosis folder).")
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
 @click.option("--free", default=",".join(S.LAYERS.default.free), show_default=True,
               help=S.LAYERS["free"].description + " Comma-separated; empty: none.")
-def calibrate3d_cmd(prints_dir, params_path, out_dir, free):
-    """Calibrate the depth parameters on registered voxel prints (PRINTS_DIR from `unscatter register3d`)."""
+@option(S.LAYERS, "bootstrap")
+def calibrate3d_cmd(prints_dirs, params_path, out_dir, free, bootstrap):
+    """Calibrate the depth parameters on registered voxel prints (PRINTS_DIRS: one or more
+    folders from `unscatter register3d`, of one layer thickness)."""
     from .calibration3d import calibrate3d
 
     names = [f.strip() for f in free.split(",") if f.strip()]
@@ -302,11 +304,16 @@ def calibrate3d_cmd(prints_dir, params_path, out_dir, free):
         S.LAYERS.check("free", names)
     except ValueError as exc:
         raise click.BadParameter(str(exc), param_hint="--free") from None
-    r = calibrate3d(prints_dir, params_path, out_dir, free2d=tuple(names))
-    v = r["values"]
+    r = calibrate3d(list(prints_dirs), params_path, out_dir, free2d=tuple(names), bootstrap=bootstrap)
+    v, sd = r["values"], r["spread"] or {}
+
+    def value(k, fmt, unit=""):
+        return f"{v[k]:{fmt}}" + (f" +- {sd[k]:{fmt}}" if k in sd else "") + unit
+
     held = f", held-out voxel IoU {r['heldout_voxel_iou']:.4f}" if r["heldout_voxel_iou"] is not None else ""
-    click.echo(f"calibrated on {r['prints'] - r['held_out']} prints: att_length {v['att_length_um']:.1f} um, diffusion "
-               f"{v['diffusion_um']:.3g} um" + "".join(f", {k} {v[k]:.4g}" for k in names) + f"{held} -> {out_dir}")
+    click.echo(f"calibrated on {r['prints'] - r['held_out']} prints: att_length {value('att_length_um', '.1f', ' um')}, "
+               f"diffusion {value('diffusion_um', '.3g', ' um')}" + "".join(f", {k} {value(k, '.4g')}" for k in names)
+               + f"{held} -> {out_dir}")
 
 
 # -------------------------------------------------------------------- simulate
@@ -479,7 +486,7 @@ def compensate_cmd(design, model_dir, params_path, method, output, frame_png, of
 @click.option("--params", "params_path", type=click.Path(exists=True, path_type=Path), required=True,
               help="The calibrated 2-D printer model (params.yaml, or its calibration or diagnosis folder).")
 @click.option("--depth", "depth_path", type=click.Path(exists=True, dir_okay=False, path_type=Path), required=True,
-              help="The depth parameters (YAML: att_length_um, spread, layer_um).")
+              help="The depth parameters (YAML: att_length_um, diffusion_um, layer_um; a calibrate3d folder's depth.yaml).")
 @click.option("-o", "--out", "out_dir", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Output folder: <design>/NNN.png layer masks and compensation3d.tsv.")
 @click.option("--name", "names", multiple=True, help="Only this design (repeat); default: every design.")

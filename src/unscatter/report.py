@@ -156,9 +156,8 @@ def _layers(page: Page, layers: Path) -> None:
     """The multi-layer stages: z-stack registration, depth calibration, compensation,
     and the printed benchmark."""
     page.h(2, "7. Multi-layer (3-D) prints")
-    for b in ("trials", "benchmark"):
-        qc = layers / "prints" / b / "qc.tsv"
-        page.h(3, f"z-stacks registered: {b}")
+    for qc in sorted((layers / "prints").glob("*/qc.tsv")):
+        page.h(3, f"z-stacks registered: {qc.parent.name}")
         rows = page.tsv(qc, ["id", "status", "reason", "rotation_deg", "scale", "bottom_um", "axial_sigma_um", "axial_r2"])
         if rows:
             page.p(f"{sum(r['status'] == 'ok' for r in rows)} of {len(rows)} z-stacks ok; the others failed QC and are "
@@ -168,7 +167,10 @@ def _layers(page: Page, layers: Path) -> None:
     if (cal / "summary.yaml").is_file():
         sm = read_yaml(cal / "summary.yaml")
         v = sm.get("values", {})
-        page.p("Fitted: " + ", ".join(f"{k} {_fmt(float(x))}" for k, x in v.items())
+        sd = sm.get("spread") or {}
+        page.p("Fitted: " + ", ".join(f"{k} {_fmt(float(x))}" + (f" ± {_fmt(float(sd[k]))}" if k in sd else "")
+                                      for k, x in v.items())
+               + (f" (± one standard deviation over {sm.get('bootstrap')} bootstrap resamples of the prints)" if sd else "")
                + f"; held-out voxel IoU {_fmt(sm.get('heldout_voxel_iou'))} on {sm.get('held_out')} prints "
                f"(fit {_fmt(sm.get('fit_voxel_iou'))}).")
         page.source(cal / "summary.yaml")

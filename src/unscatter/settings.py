@@ -407,6 +407,15 @@ LAYERS = Stage(
     designs=Setting("string", "data/designs3d", "Folder of 3-D designs (one folder of layer PNGs each).", min_length=1),
     names=Setting("array", [], "3-D designs to use; empty - every one.", unique=True,
                   items=Setting("string", None, "", min_length=1)),
+    bootstrap=_int(8, "Bootstrap replicates over the 3-D trial prints: the depth parameters' spread (0 - none).",
+                   lo=0),
+    batches=Setting("array", [], "With source 'batches': the 3-D trial print batches (z-stacks, in the data contract: "
+                    "batch.yaml with layer_um and z_step_um, masks/<id>/ one PNG a layer, images/<id>.tif), named as "
+                    "in 'batches'. Needed when run is true and source is 'batches'.", unique=True,
+                    items=Setting("string", None, "", min_length=1)),
+    benchmark_batch=Setting("string", None, "With source 'batches': the 3-D benchmark's print job once printed and "
+                            "imaged as z-stacks; scored, never calibrated on. null - the print job is written, not "
+                            "scored. With source 'lab' the virtual lab prints the job.", nullable=True),
 )
 
 # The config's layout: the workflow's own settings at the top level, then a section a stage.

@@ -18,6 +18,9 @@ validate(config, schema="../schemas/config.schema.yaml")
 # Every output, log and benchmark lives under this prefix (config/ci.yaml: results/ci).
 RESULTS = config["results"].rstrip("/")
 
+# Outputs of the multi-layer (3-D) stages (workflow/rules/layers.smk).
+LAYERS = f"{RESULTS}/layers"
+
 # The user's data: read, never written (README.md, 'Using your own print batches').
 DATA = Path("data")
 
@@ -103,6 +106,39 @@ BENCHMARK_BATCH = _benchmark_batch()
 ALL_BATCHES = {**BATCHES, **BENCHMARK_BATCH}
 
 
+def _layer_batches():
+    """The multi-layer batches (name -> folder): the 3-D trial prints', and the 3-D
+    benchmark's (empty when its print job is not printed yet). The virtual lab's are
+    named trials and benchmark; measured ones as in 'batches'."""
+    if not config["layers"]["run"]:
+        return {}, {}
+    if config["source"] == "lab":
+        return {"trials": f"{LAYERS}/lab/trials"}, {"benchmark": f"{LAYERS}/lab/benchmark"}
+    if not config["layers"]["batches"]:
+        raise WorkflowError("config: layers.run with source 'batches' needs layers.batches, the batches of the 3-D "
+                            "trial prints (z-stacks; see README.md)")
+    trials = {}
+    for entry in config["layers"]["batches"]:
+        name, folder = _batch_folder(entry, "layers.batches")
+        if name in trials:
+            raise WorkflowError(f"config: layers.batches {trials[name]} and {folder} have the same name {name!r}; "
+                                "rename one folder")
+        trials[name] = str(folder)
+    bench = {}
+    if config["layers"]["benchmark_batch"]:
+        name, folder = _batch_folder(config["layers"]["benchmark_batch"], "layers.benchmark_batch")
+        if name in trials:
+            raise WorkflowError(f"config: layers.benchmark_batch {folder} has the name of a 3-D trial batch "
+                                f"({trials[name]}): the benchmark's prints are scored, never calibrated on")
+        bench[name] = str(folder)
+    return trials, bench
+
+
+# The 3-D trial batches the depth parameters are calibrated on, and the 3-D benchmark's.
+LAYER_TRIALS, LAYER_BENCHMARK = _layer_batches()
+LAYER_BATCHES = {**LAYER_TRIALS, **LAYER_BENCHMARK}
+
+
 def _check_results():
     """results: the folder every output goes under must keep clear of what the workflow
     reads: not the repository (or a folder holding it), not data/ or inside it, not
@@ -114,7 +150,8 @@ def _check_results():
     elif _within(workflow.basedir, RESULTS) or _within(DATA, RESULTS):
         problem = "is the repository, or a folder that holds it or data/"
     else:
-        reads = [f for f in ALL_BATCHES.values() if config["source"] == "batches"] + [config["designs"]["folder"]]
+        measured = list(ALL_BATCHES.values()) + list(LAYER_BATCHES.values()) if config["source"] == "batches" else []
+        reads = measured + [config["designs"]["folder"], config["layers"]["designs"]]
         inside = [f for f in reads if _within(RESULTS, f)]
         if inside:
             problem = f"lies in {inside[0]}, which the workflow only reads"
@@ -139,6 +176,7 @@ OTHER = next(label for label in MODELS if label != config["model"])
 
 wildcard_constraints:
     batch="|".join(re.escape(name) for name in ALL_BATCHES),
+    b3="|".join(re.escape(name) for name in LAYER_BATCHES) or "trials|benchmark",
     model="|".join(re.escape(name) for name in MODELS.values()),
 
 
@@ -154,11 +192,21 @@ def batch_files(wildcards):
     """
     if config["source"] == "lab":
         return []
-    root = Path(ALL_BATCHES[wildcards.batch])
+    return _contract_files(ALL_BATCHES[wildcards.batch])
+
+
+def _contract_files(folder):
+    root = Path(folder)
     files = [root / "batch.yaml"]
     for sub in ("masks", "images"):
-        files += sorted(p for p in (root / sub).iterdir() if p.is_file() and not p.name.startswith("."))
+        files += sorted(p for p in (root / sub).rglob("*")
+                        if p.is_file() and not any(part.startswith(".") for part in p.relative_to(root).parts))
     return [str(p) for p in files]
+
+
+def layer_batch_files(wildcards):
+    """Every file of a measured multi-layer batch (the layer PNGs of masks/<id>/ too)."""
+    return [] if config["source"] == "lab" else _contract_files(LAYER_BATCHES[wildcards.b3])
 
 
 # ---------------------------------------------------------------------------- lab
@@ -270,11 +318,18 @@ def all_input(wildcards):
     targets.append(f"{RESULTS}/report.html")
     if config["trial_masks"]["next"]:
         targets.append(f"{RESULTS}/next_trial_masks")
-    if config["layers"]["run"]:
-        if config["source"] != "lab":
-            raise WorkflowError("config: layers.run needs source: lab (measured multi-layer batches are not wired into "
-                                "the workflow yet; use unscatter register3d, calibrate3d, compensate3d by hand)")
-        targets.append(f"{RESULTS}/layers/benchmark/scores")
+    targets += layers_targets()
+    return targets
+
+
+def layers_targets():
+    """The multi-layer stages' final outputs: the scored 3-D benchmark, or its print job
+    while no measured 3-D benchmark batch is given."""
+    if not config["layers"]["run"]:
+        return []
+    targets = [f"{LAYERS}/prints/{name}" for name in LAYER_TRIALS] + [f"{LAYERS}/benchmark/print_job"]
+    if LAYER_BENCHMARK:
+        targets.append(f"{LAYERS}/benchmark/scores")
     return targets
 
 
@@ -300,8 +355,6 @@ def augment_count():
 
 
 # ------------------------------------------------------------------ multi-layer
-# Outputs of the multi-layer (3-D) stages (workflow/rules/layers.smk).
-LAYERS = f"{RESULTS}/layers"
 
 
 def designs3d_files(wildcards=None):

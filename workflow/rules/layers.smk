@@ -1,5 +1,5 @@
-# Multi-layer (3-D) prints, when layers.run is true: 3-D trial prints on the virtual lab,
-# their z-stacks registered, the depth parameters calibrated on them (with the 2-D model
+# Multi-layer (3-D) prints, when layers.run is true: 3-D trial prints on the virtual lab
+# (or measured batches, layers.batches, with source: batches), their z-stacks registered, the depth parameters calibrated on them (with the 2-D model
 # in use), the 3-D designs compensated, and the benchmark's print job printed, registered
 # and scored. z-stacks that fail registration QC are skipped (never used) and, in the
 # benchmark, scored as failed.
@@ -46,15 +46,15 @@ rule virtual_lab3d:
 
 
 rule register3d:
-    """Register the z-stacks of a multi-layer batch to their layer masks: voxel prints."""
+    """Register the z-stacks of a multi-layer batch (the virtual lab's, or a measured one)
+    to their layer masks: voxel prints."""
     input:
-        batch=f"{LAYERS}/lab/{{b3}}",
+        batch=lambda w: LAYER_BATCHES[w.b3],
+        files=layer_batch_files,
     output:
         directory(f"{LAYERS}/prints/{{b3}}"),
     log:
         f"{RESULTS}/logs/layers/register_{{b3}}.log",
-    wildcard_constraints:
-        b3="trials|benchmark",
     params:
         level=config["registration"]["level"],
         code=code_version("imaging", "io"),
@@ -67,9 +67,10 @@ rule register3d:
 
 
 rule calibrate3d:
-    """The depth parameters (and layers.free) fitted to the registered 3-D trial prints."""
+    """The depth parameters (and layers.free) fitted to the registered 3-D trial prints,
+    their spread from a bootstrap over the prints."""
     input:
-        prints=f"{LAYERS}/prints/trials",
+        prints=expand(f"{LAYERS}/prints/{{b3}}", b3=LAYER_TRIALS),
         model=model_dir(MODEL),
     output:
         directory(f"{LAYERS}/calibration"),
@@ -77,6 +78,7 @@ rule calibrate3d:
         f"{RESULTS}/logs/layers/calibrate3d.log",
     params:
         free=config["layers"]["free"],
+        bootstrap=config["layers"]["bootstrap"],
         code=code_version("calibration3d", "model", "io", "metrics"),
     threads: 1
     resources:
@@ -128,7 +130,7 @@ rule benchmark3d_job:
 rule benchmark3d_score:
     """The printed 3-D benchmark scored against the designs: metrics.tsv, sections.png."""
     input:
-        prints=f"{LAYERS}/prints/benchmark",
+        prints=expand(f"{LAYERS}/prints/{{b3}}", b3=LAYER_BENCHMARK),
         designs=designs3d_files,
     output:
         directory(f"{LAYERS}/benchmark/scores"),

@@ -8,7 +8,7 @@ rule report:
         f"{RESULTS}/train/{MODEL}",
         lambda w: list(benchmark_masks().values()),
         benchmark_targets(),
-        lambda w: [f"{RESULTS}/layers/benchmark/scores"] if config["layers"]["run"] else [],
+        layers_targets(),
     output:
         f"{RESULTS}/report.html",
     log:

@@ -34,8 +34,10 @@ def main(snakemake):
     elif rule == "calibrate3d":
         from unscatter.calibration3d import calibrate3d
 
-        r = calibrate3d(snakemake.input.prints, snakemake.input.model, out, free2d=tuple(p.free))
-        log.info("depth: %s; held-out voxel IoU %s -> %s", r["values"], r["heldout_voxel_iou"], out)
+        r = calibrate3d(list(snakemake.input.prints), snakemake.input.model, out, free2d=tuple(p.free),
+                        bootstrap=p.bootstrap)
+        log.info("depth: %s (spread %s); held-out voxel IoU %s -> %s", r["values"], r.get("spread"),
+                 r["heldout_voxel_iou"], out)
     elif rule == "compensate3d":
         from unscatter.compensation3d import compensate3d_designs
 
@@ -53,7 +55,7 @@ def main(snakemake):
     elif rule == "benchmark3d_score":
         from unscatter.compensation3d import score3d_batch
 
-        for r in score3d_batch(snakemake.input.prints, p.folder, out, names=p.names or None):
+        for r in score3d_batch(snakemake.input.prints[0], p.folder, out, names=p.names or None):
             log.info("%s", r)
     else:
         raise ValueError(f"no adapter for rule {rule!r}")
