@@ -392,7 +392,7 @@ def main():
                     help="N random labs (unscatter.lab.random_lab), one effect each, instead of the scenarios")
     ap.add_argument("--seed", type=int, default=None, help="random labs: the seed (default: a new one, printed)")
     ap.add_argument("--heldout", type=int, default=16, help="random labs: held-out paper masks and as many test patterns")
-    ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (calibration.OBJECTIVES; "
+    ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (fitting.OBJECTIVES; "
                     "default: its default); the diagnosis uses the calibration's")
     ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
     ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)})")

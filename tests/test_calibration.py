@@ -184,7 +184,7 @@ def test_per_print_objectives_pixel_error_and_dice():
     print."""
     import torch
 
-    from unscatter.calibration import Objective, build_objective, per_print_error, print_weights
+    from unscatter.fitting import Objective, build_objective, per_print_error, print_weights
     from unscatter.model import FixedMasks, get_model, masks_to_tensor
 
     cpu = torch.device("cpu")

@@ -412,7 +412,7 @@ def test_refinement_keeps_kernel_parameters_inside_the_padding():
     parameter: the evaluator's padding is made for the bounds (a multi-start
     near a tail's longest length stopped the diagnosis with 'a kernel is wider than this
     evaluator's padding')."""
-    from unscatter.calibration import Space, refine
+    from unscatter.fitting import Space, refine
 
     p = extend_params(default_params("eq1"), ["heavy_tail"])
     m = get_model(p.model)

@@ -168,7 +168,7 @@ def test_model_and_effect_names_are_the_libraries():
 
     assert list(S.MODEL_NAMES) == model_names()
     assert list(S.EFFECT_NAMES) == effect_names()
-    from unscatter.calibration import OBJECTIVES
+    from unscatter.fitting import OBJECTIVES
 
     assert sorted(OBJECTIVES) == sorted(S.CALIBRATION["objective"].choices)
 

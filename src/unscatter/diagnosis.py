@@ -17,7 +17,7 @@ minus simulated print) carries what the model lacks. The loop here:
    points spread over their bounds, each refined by a short L-BFGS run of all
    parameters; at the neutral value the gradient may not reach an effect's other
    parameters, e.g. a tail's length at zero tail), then a small GA around the best
-   start and the gradient refinement (``calibration.fit_params``).
+   start and the gradient refinement (``fitting.fit_params``).
    A candidate is accepted when the paired bootstrap over prints of the per-print
    held-out error difference has its 2.5 % quantile above 0 *and* the mean improvement
    is at least ``min_improvement`` of the current error; the best accepted candidate
@@ -31,7 +31,7 @@ minus simulated print) carries what the model lacks. The loop here:
    ``unexplained_residual: true`` and names the diagnostics.
 
 Held-out error is the calibration's objective on held-out prints (``objective``,
-``calibration.OBJECTIVES``): the mismatch, the fraction of pixels where measured and
+``fitting.OBJECTIVES``): the mismatch, the fraction of pixels where measured and
 simulated prints differ (the paper's), or each print's pixel error (the mismatch over
 the measured print's area), which weighs thin and small prints as the scores do. The
 ranking's ``heldout_mismatch`` column holds that error.
@@ -60,7 +60,8 @@ from scipy import ndimage
 
 from . import metrics
 from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
-from .calibration import (
+from .calibration import load_prints
+from .fitting import (
     OBJECTIVES,
     Objective,
     Space,
@@ -68,7 +69,6 @@ from .calibration import (
     build_objective,
     fit_params,
     grid_factor,
-    load_prints,
     per_print_error,
     print_weights,
     refine,
@@ -98,7 +98,7 @@ DEFAULTS = dict(
     population=12,  # GA per fold fit (warm-started: the current model's fit is one individual)
     generations=4,
     span=0.15,  # the parameters the current model has: searched in +- span x range around its fit
-    ga_size=128,  # GA sampling (about this many samples a side; see calibration.grid_factor)
+    ga_size=128,  # GA sampling (about this many samples a side; see fitting.grid_factor)
     refine=True,
     refine_size=128,
     temperatures=(0.1, 0.03),
@@ -123,7 +123,7 @@ DEFAULTS = dict(
     # measured on 2 shared cores, 24 prints of 512 x 512, one evaluation at every 2nd pixel took
     # 24-38 ms with 1 thread and 28-76 ms with 2, its gradient 53-81 ms vs 76-650 ms.
     threads=DIAGNOSIS.default.threads,
-    # the error every fit minimises and every model is scored by (calibration.OBJECTIVES);
+    # the error every fit minimises and every model is scored by (fitting.OBJECTIVES);
     # None: the base calibration's (params.yaml objective.name), else the paper's mismatch
     objective=None,
     area_floor=None,  # pixel_error's floor on the printed area (None: the calibration's, else 0.02)
@@ -135,7 +135,7 @@ ERRORS = {
     "mismatch": "held-out mismatch: fraction of pixels where the measured and the simulated print differ",
     "dice": "held-out 1 - Dice per print: |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels)",
     "pixel_error": ("held-out pixel error: pixels where the measured and the simulated print differ over the measured "
-                    "print's area (at least area_floor of the field), times the mean of that weight (calibration.OBJECTIVES)"),
+                    "print's area (at least area_floor of the field), times the mean of that weight (fitting.OBJECTIVES)"),
 }
 ERROR = ERRORS["mismatch"]
 

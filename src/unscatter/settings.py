@@ -301,7 +301,7 @@ CALIBRATION = Stage(
     free_c0=_bool(False, "Fit c0 as well (the paper's 7 parameters). Eq. 1 is unchanged when c and T are scaled "
                   "together, so by default c0 = 1 fixes that gauge."),
     objective=_choice("mismatch", ("mismatch", "pixel_error", "dice"),
-                      "What the fit minimises (unscatter.calibration.OBJECTIVES): mismatch - the paper's mean squared "
+                      "What the fit minimises (unscatter.fitting.OBJECTIVES): mismatch - the paper's mean squared "
                       "difference over all pixels (prints weigh by their area); pixel_error - each print's pixel error; "
                       "dice - 1 - Dice per print (IoU's twin). The diagnosis scores held-out prints with the same one. "
                       "On random labs mismatch named the effects as well or better (benchmarks/bench_diagnosis.py)."),

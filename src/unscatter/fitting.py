@@ -1,0 +1,457 @@
+"""Fitting a printer model to measured prints: what calibration and diagnosis share.
+
+- the objective (``OBJECTIVES``: the paper's mismatch, pixel_error, dice), evaluated on
+  every f-th pixel of the prints through ``model.FixedMasks`` (``Objective``), with the
+  per-print error that is its held-out metric (``per_print_error``);
+- the search: a GA (DEAP) on the free parameters scaled to their bounds (``Space``,
+  ``run_ga``), then a gradient refinement on the smooth model (``refine``), kept only if
+  it lowers the hard objective (``fit_params``); sampling factors chosen so the kernel
+  found is not aliased (``band_factor``);
+- folds and resamples: k-fold cross-validation over prints and a bootstrap over prints,
+  each a small refit around the full-data optimum (``cross_validate``, ``bootstrap``).
+
+``unscatter.calibration`` fits Eq. 1 (Guan et al. 2022) with it; ``unscatter.diagnosis``
+fits the candidate effects with it and scores models by the same held-out error.
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from . import metrics
+from .model import FixedMasks, Params
+
+log = logging.getLogger(__name__)
+
+OBJECTIVES = {
+    "mismatch": (
+        "mean over prints and pixels of (measured - simulated)^2, hard threshold, full resolution "
+        "(Guan et al. 2022, 'Simulator calibration': mean squared distance averaged over the trial pairs)"),
+    "dice": (
+        "mean over prints of |measured XOR simulated| / (|measured| + |simulated| + area_floor x pixels), hard "
+        "threshold, full resolution: 1 - Dice per print, a monotone function of each print's IoU (IoU = D / (2 - D)), "
+        "so the fit is scored as the prints are"),
+    "pixel_error": (
+        "mean over prints of |measured XOR simulated| / max(|measured|, area_floor x pixels), hard threshold, full "
+        "resolution: each print's pixel error (unscatter.metrics), so that a thin or small print weighs as much as a "
+        "large one (the paper's squared distance weighs prints by their area)"),
+}
+OBJECTIVE = OBJECTIVES["mismatch"]
+
+
+def build_objective(sim: FixedMasks, prints: np.ndarray, factor: int, objective: str = "mismatch",
+                    area_floor: float = 0.02) -> Objective:
+    """``Objective.build`` for one of ``OBJECTIVES``, on every ``factor``-th pixel."""
+    return Objective.build(sim, prints, factor, print_weights(prints, objective, area_floor),
+                           dice_floor=area_floor if objective == "dice" else None)
+
+
+def per_print_error(simulated: np.ndarray, measured: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02,
+                    weights=None) -> np.ndarray:
+    """Each print's share of the objective (its mean over prints is the objective):
+    mismatch, mismatch times ``weights`` (pixel_error: ``print_weights`` of all the
+    prints), or 1 - Dice."""
+    s, m = np.asarray(simulated, bool), np.asarray(measured, bool)
+    B = len(m)
+    xor = (s != m).reshape(B, -1).sum(axis=1).astype(np.float64)
+    npx = m[0].size if B else 1
+    if objective == "dice":
+        return xor / (s.reshape(B, -1).sum(axis=1) + m.reshape(B, -1).sum(axis=1) + area_floor * npx)
+    w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+    return xor / npx * w
+
+
+def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
+    """Per-print weights (mean 1) that make the weighted mean of per-print mismatch the
+    ``objective`` (``OBJECTIVES``): ones for the paper's mismatch, and for pixel_error
+    pixels / max(printed area, area_floor x pixels), normalised to mean 1."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"unknown objective {objective!r}; known: {sorted(OBJECTIVES)}")
+    B = len(prints)
+    if objective in ("mismatch", "dice") or B == 0:
+        return np.ones(B)
+    npx = prints[0].size
+    area = np.asarray(prints, bool).reshape(B, -1).sum(axis=1)
+    w = npx / np.maximum(area, float(area_floor) * npx)
+    return w / w.mean()
+
+
+
+def grid_factor(shape, size: int | None) -> int:
+    """Decimation factor (1, 2, 4 or 8) leaving about ``size`` samples a side."""
+    if not size:
+        return 1
+    f = 1
+    while f < 8 and min(shape) / (2 * f) >= size:
+        f *= 2
+    return f
+
+
+GA_BAND_TOL = 0.1  # GA: dose errors up to ~1e-2 (2 % of a threshold of 0.5) are fine for a coarse search
+BAND_TOL = 0.01  # refinement and checks: dose errors ~1e-3 (measured: ~ a tenth of the dropped transfer)
+
+
+def band_factor(sim: FixedMasks, model, values: dict, fmax: int, tol: float = BAND_TOL) -> int:
+    """Largest decimation factor <= fmax at which the kernel for ``values`` leaves at
+    most ``tol`` of its transfer beyond the samples' Nyquist frequency."""
+    f = fmax
+    while f > 1 and sim.dropped(model.theta(values, sim.masks.device), f) > tol:
+        f //= 2
+    return f
+
+
+# ------------------------------------------------------------------------ objective
+
+
+class Objective:
+    """Weighted mean over prints of mean((measured - simulated)^2) on one grid; with
+    ``dice_floor`` (a share of the field) each print's |measured XOR simulated| /
+    (|measured| + |simulated| + dice_floor x pixels) instead, 1 - Dice."""
+
+    def __init__(self, sim: FixedMasks, target: torch.Tensor, weights=None, chunk: int | None = None,
+                 dice_floor: float | None = None):
+        self.sim = sim
+        self.target = target  # (B, h, w) measured print (0/1) at the sim's sample points
+        B = target.shape[0]
+        self.dice_floor = dice_floor
+        self.tsum = target.sum(dim=(1, 2))
+        self.floor_px = None if dice_floor is None else float(dice_floor) * target.shape[1] * target.shape[2]
+        self.raw_weights = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+        w = torch.as_tensor(self.raw_weights.astype(np.float32))
+        self.weights = (w / w.sum()).to(target.device, torch.float32)
+        npx = target.shape[1] * target.shape[2]
+        # for a binary simulated print s: (t - s)^2 = t^2 + s (1 - 2 t), so one masked sum per print
+        self.base = (target**2).mean(dim=(1, 2))
+        self.gain = (1 - 2 * target) / npx
+        # blocks of individuals x masks with ~16 MB of spectra: big enough to amortise
+        # reading the precomputed spectra, small enough to reuse freed memory instead of
+        # faulting in fresh pages (which costs more than the arithmetic here)
+        per = sim.shape[0] * (sim.shape[1] // 2 + 1) * 8  # one mask, one individual
+        self.chunk = chunk or max(1, int(16e6 // (B * per)))
+        self.block = B if self.chunk * B * per <= 32e6 else max(1, int(16e6 // (self.chunk * per)))
+
+    @classmethod
+    def build(cls, sim: FixedMasks, prints: np.ndarray, factor: int, weights=None, dice_floor: float | None = None):
+        """The objective on every ``factor``-th pixel of the full-resolution one.
+
+        ``sim`` is the full-resolution evaluator of the prints' masks; the samples are
+        exact dose values, so this is an unbiased subsample of the full objective.
+        """
+        target = torch.from_numpy(np.ascontiguousarray(prints[:, ::factor, ::factor], dtype=np.float32))
+        return cls(sim.decimated(factor) if factor > 1 else sim, target.to(sim.masks.device), weights, dice_floor=dice_floor)
+
+    def subset(self, idx, weights=None) -> Objective:
+        """The objective on prints ``idx``, their weights times ``weights`` (e.g. bootstrap counts)."""
+        idx = np.asarray(idx)
+        t = self.target[torch.as_tensor(idx, device=self.target.device)]
+        w = self.raw_weights[idx] * (1.0 if weights is None else np.asarray(weights, np.float64))
+        return Objective(self.sim.subset(idx), t, w, dice_floor=self.dice_floor)
+
+    def per_print(self, theta) -> torch.Tensor:
+        """(P, B) mean squared distance per print, hard threshold."""
+        out = []
+        P = next(iter(theta.values())).shape[0]
+        with torch.no_grad():
+            for i in range(0, P, self.chunk):
+                sub = {k: v[i : i + self.chunk] for k, v in theta.items()}
+                B = self.target.shape[0]
+                parts = []
+                for j in range(0, B, self.block):
+                    sl = slice(j, j + self.block) if self.block < B else None
+                    s = self.sim.prints(sub, masks=sl)
+                    sl = sl or slice(None)
+                    if self.floor_px is None:
+                        parts.append(self.base[sl][None] + torch.where(s, self.gain[sl], 0.0).sum(dim=(2, 3)))
+                    else:
+                        S = s.sum(dim=(2, 3)).to(torch.float32)
+                        inter = torch.where(s, self.target[sl], 0.0).sum(dim=(2, 3))
+                        t = self.tsum[sl][None]
+                        parts.append((t + S - 2 * inter) / (t + S + self.floor_px))
+                out.append(torch.cat(parts, dim=1))
+        return torch.cat(out)
+
+    def hard(self, theta) -> np.ndarray:
+        return (self.per_print(theta) @ self.weights).cpu().numpy().astype(np.float64)
+
+    def smooth(self, theta, temperature: float) -> torch.Tensor:
+        s = self.sim.prints(theta, temperature)
+        if self.floor_px is None:
+            return ((s - self.target[None]) ** 2).mean(dim=(2, 3)) @ self.weights
+        S, inter, t = s.sum(dim=(2, 3)), (s * self.target[None]).sum(dim=(2, 3)), self.tsum[None]
+        return ((t + S - 2 * inter) / (t + S + self.floor_px)) @ self.weights
+
+
+class Space:
+    """The free parameters scaled to the unit box [0, 1]^d (the GA's genome)."""
+
+    def __init__(self, params: Params, lower=None, upper=None):
+        self.params = params
+        self.names = params.free
+        self.lo = np.array([params.bounds[k][0] for k in self.names]) if lower is None else np.asarray(lower, float)
+        self.hi = np.array([params.bounds[k][1] for k in self.names]) if upper is None else np.asarray(upper, float)
+
+    def decode(self, g) -> dict:
+        g = np.atleast_2d(np.asarray(g, float))
+        v = self.lo + np.clip(g, 0, 1) * (self.hi - self.lo)
+        out = {k: np.full(len(g), float(x)) for k, x in self.params.values.items()}
+        for i, k in enumerate(self.names):
+            out[k] = v[:, i]
+        return out
+
+    def encode(self, values: dict) -> np.ndarray:
+        return np.array([(values[k] - lo) / (hi - lo) for k, lo, hi in zip(self.names, self.lo, self.hi)])
+
+    def around(self, values: dict, span: float) -> Space:
+        """A box of +- span x (full range) around ``values``, inside the full bounds."""
+        full_lo = np.array([self.params.bounds[k][0] for k in self.names])
+        full_hi = np.array([self.params.bounds[k][1] for k in self.names])
+        c = np.array([values[k] for k in self.names])
+        r = span * (full_hi - full_lo)
+        return Space(self.params, np.maximum(full_lo, c - r), np.minimum(full_hi, c + r))
+
+
+# ------------------------------------------------------------------------------- GA
+
+
+def _deap_types():
+    from deap import base, creator
+
+    if not hasattr(creator, "UnscatterFitness"):
+        creator.create("UnscatterFitness", base.Fitness, weights=(-1.0,))
+    if not hasattr(creator, "UnscatterIndividual"):
+        creator.create("UnscatterIndividual", list, fitness=creator.UnscatterFitness)
+    return creator.UnscatterIndividual
+
+
+def run_ga(space: Space, objective: Objective, model, device, seed: int, population: int, generations: int,
+           cxpb=0.7, mutpb=0.3, tournament=3, elite=2, init=(), progress=True, desc="GA"):
+    """DEAP GA on the unit box; the population is evaluated as one batch per generation.
+
+    Returns (best values dict, best objective, history rows).
+    """
+    from deap import algorithms, base, tools
+    from tqdm import tqdm
+
+    Individual = _deap_types()
+    d = len(space.names)
+    tb = base.Toolbox()
+    tb.register("mate", tools.cxSimulatedBinaryBounded, eta=15.0, low=0.0, up=1.0)
+    tb.register("mutate", tools.mutPolynomialBounded, eta=20.0, low=0.0, up=1.0, indpb=1.0 / max(d, 1))
+    tb.register("select", tools.selTournament, tournsize=tournament)
+
+    def evaluate(inds):
+        inds = [i for i in inds if not i.fitness.valid]
+        if inds:
+            theta = model.theta(space.decode([list(i) for i in inds]), device)
+            for ind, f in zip(inds, objective.hard(theta)):
+                ind.fitness.values = (float(f),)
+        return len(inds)
+
+    state = random.getstate()  # DEAP draws from the random module: seed it, then restore
+    random.seed(seed)
+    try:
+        pop = [Individual(list(np.clip(g, 0, 1))) for g in init][:population]
+        pop += [Individual([random.random() for _ in range(d)]) for _ in range(population - len(pop))]
+        history = []
+        nevals = evaluate(pop)
+        bar = tqdm(range(generations + 1), desc=desc, disable=not progress, unit="gen", leave=False)
+        for gen in bar:
+            if gen > 0:
+                elites = [tb.clone(i) for i in tools.selBest(pop, elite)]
+                off = algorithms.varAnd(tb.select(pop, len(pop) - elite), tb, cxpb, mutpb)
+                nevals = evaluate(off)
+                pop = elites + off
+            fits = np.array([i.fitness.values[0] for i in pop])
+            best = tools.selBest(pop, 1)[0]
+            vals = space.decode(list(best))
+            history.append(dict(generation=gen, nevals=nevals, best=float(fits.min()), mean=float(fits.mean()), std=float(fits.std()),
+                                **{k: float(vals[k][0]) for k in space.names}))
+            bar.set_postfix(best=f"{fits.min():.5f}")
+        bar.close()
+    finally:
+        random.setstate(state)
+    best = tools.selBest(pop, 1)[0]
+    return {k: float(v[0]) for k, v in space.decode(list(best)).items()}, float(best.fitness.values[0]), history
+
+
+# ----------------------------------------------------------------------- refinement
+
+
+def refine(space: Space, objective: Objective, model, values: dict, device, temperatures=(0.1, 0.03), iters=12) -> dict:
+    """L-BFGS on the free parameters through the smooth (sigmoid) model.
+
+    Works in unit-box coordinates of the full bounds and clips to them at the end.
+    """
+    u = torch.tensor(space.encode(values), dtype=torch.float32, device=device, requires_grad=True)
+    lo = torch.tensor(space.lo, dtype=torch.float32, device=device)
+    span = torch.tensor(space.hi - space.lo, dtype=torch.float32, device=device)
+    fixed = {k: torch.tensor([float(v)], device=device) for k, v in values.items() if k not in space.names}
+
+    def theta_of(u):
+        free = lo + span * u
+        th = dict(fixed)
+        for i, k in enumerate(space.names):
+            th[k] = free[i : i + 1]
+        return {k: th[k] for k in model.names}
+
+    # kernel parameters stay within their bounds, where the evaluator's padding holds the kernel
+    # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1)
+    kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
+    for temp in temperatures:
+        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
+
+        def closure():
+            opt.zero_grad()
+            with torch.no_grad():  # stay where the evaluator's padding holds the kernel
+                u.clamp_(-0.5, 1.5)
+                for i in kern:
+                    u[i].clamp_(0.0, 1.0)
+            loss = objective.smooth(theta_of(u), temp)[0]
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+    g = np.clip(u.detach().cpu().numpy().astype(float), 0, 1)
+    return {k: float(v[0]) for k, v in space.decode(g).items()}
+
+
+# ------------------------------------------------------------------------ one fit
+
+
+@dataclass
+class Fit:
+    values: dict
+    objective: float  # hard objective on the check grid
+    objective_ga: float  # the GA best on the check grid
+    refined: bool  # refinement kept
+    history: list
+    factors: dict  # decimation factors used: ga, refine, check
+
+
+def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: int, device, seed: int, s: dict,
+               population: int, generations: int, init=(), desc="GA", history=True) -> Fit:
+    """GA on every ``f_ga``-th pixel, then the refinement on every ``f_ref``-th pixel
+    (None: no refinement), kept if it lowers the hard objective on every
+    ``f_check``-th pixel. ``obj(f)`` gives the objective at factor f.
+
+    A factor is lowered when the kernel found is too narrow for it (``band_factor``).
+    """
+    sim = obj(f_ga).sim  # any evaluator: band_factor needs only its grid and model
+    while True:
+        best, _, hist = run_ga(space, obj(f_ga), model, device, seed, population, generations, s["cxpb"], s["mutpb"],
+                               s["tournament"], s["elite"], init=init, progress=s["progress"], desc=desc)
+        f_ok = band_factor(sim, model, best, f_ga, GA_BAND_TOL)
+        if f_ok == f_ga:
+            break
+        log.info("the kernel found is too narrow for every-%d-th-pixel sampling; GA again at every %d-th pixel", f_ga, f_ok)
+        f_ga = f_ok
+    check = obj(min(f_check, band_factor(sim, model, best, f_check)))
+    f_best = float(check.hard(model.theta(best, device))[0])
+    values, f, kept = best, f_best, False
+    factors = dict(ga=f_ga, check=min(f_check, band_factor(sim, model, best, f_check)))
+    if f_ref is not None:
+        f_ref = band_factor(sim, model, best, f_ref)
+        factors["refine"] = f_ref
+        cand = refine(Space(space.params), obj(f_ref), model, best, device, s["temperatures"], s["refine_iters"])
+        f_cand = float(check.hard(model.theta(cand, device))[0])
+        if f_cand < f_best:  # the refinement is kept only if the hard objective improves
+            values, f, kept = cand, f_cand, True
+    return Fit(values, f, f_best, kept, hist if history else [], factors)
+
+
+
+# ------------------------------------------------------------------- folds, resamples
+
+
+def _refit(refit: dict, idx, weights, seed: int, desc: str) -> Fit:
+    """A cheaper fit on a subset/resample: small GA in a box around the full-data optimum,
+    then the refinement. The GA is not seeded with the optimum itself: an elite copy of it
+    would survive most small refits and shrink the bootstrap spread to nothing."""
+    s, m, device, values = refit["s"], refit["model"], refit["device"], refit["values"]
+    box = refit["space"].around(values, s["refit_span"])
+    cache: dict[int, Objective] = {}
+
+    def obj(f):
+        if f not in cache:
+            cache[f] = refit["obj"](f).subset(idx, weights)
+        return cache[f]
+
+    return fit_params(box, m, obj, refit["f_ga"], refit["f_ref"] if s["refine"] else None, refit["f_ref"], device, seed,
+                      dict(s, progress=False), s["refit_population"], s["refit_generations"], desc=desc, history=False)
+
+
+def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, per_print: list):
+    """k-fold over prints: refit without a fold, score the fold's prints (IoU, pixel
+    error). ``data``: the prints (``calibration.PrintSet``: labels, prints)."""
+    B = len(data)
+    folds = int(folds or 0)
+    if folds < 2 or B < 2:
+        return [], dict(folds=0, note="cross-validation off" if folds < 2 else "too few prints for cross-validation")
+    k = min(folds, B)
+    perm = np.random.default_rng([seed, 7]).permutation(B)
+    m, device = refit["model"], refit["device"]
+    rows = []
+    for i, test in enumerate(np.array_split(perm, k)):
+        train = np.setdiff1d(np.arange(B), test)
+        fit = _refit(refit, train, None, seed + 1000 + i, f"cv fold {i}")
+        with torch.no_grad():
+            sims = full.subset(test).sim.prints(m.theta(fit.values, device))[0].cpu().numpy()
+        for j, sim in zip(test, sims):
+            p = data.prints[j]
+            rows.append(dict(fold=i, id=data.labels[j], n_train=len(train), iou=metrics.iou(sim, p), pixel_error=metrics.pixel_error(sim, p),
+                             mismatch=float(np.mean(sim != p)), in_sample_iou=per_print[j]["iou"]))
+    pe = [r["pixel_error"] for r in rows if np.isfinite(r["pixel_error"])]
+    summary = dict(folds=k, heldout_iou_mean=float(np.mean([r["iou"] for r in rows])),
+                   heldout_iou_median=float(np.median([r["iou"] for r in rows])),
+                   heldout_pixel_error_mean=float(np.mean(pe)) if pe else None,
+                   heldout_mismatch_mean=float(np.mean([r["mismatch"] for r in rows])),
+                   in_sample_iou_mean=float(np.mean([r["iou"] for r in per_print])))
+    return rows, summary
+
+
+def bootstrap(data, refit: dict, seed: int, replicates: int):
+    """Refit on prints resampled with replacement; spread of each free parameter."""
+    n = int(replicates or 0)
+    names = refit["space"].names
+    if n < 1:
+        return [], dict(method="none", replicates=0)
+    B = len(data)
+    rng = np.random.default_rng([seed, 11])
+    rows, skipped = [], 0
+    for r in range(n):
+        counts = rng.multinomial(B, np.full(B, 1.0 / B))
+        idx = np.nonzero(counts)[0]
+        pr = data.prints[idx]
+        if not pr.any() or pr.all():  # a resample without edges identifies nothing
+            skipped += 1
+            continue
+        fit = _refit(refit, idx, counts[idx], seed + 2000 + r, f"bootstrap {r}")
+        rows.append(dict(replicate=r, prints=len(idx), objective=fit.objective, **{k: fit.values[k] for k in names}))
+    out = dict(method="bootstrap over prints (refits: small GA around the full-data optimum + refinement)", replicates=n,
+               used=len(rows), parameters={})
+    if skipped:
+        out["note"] = f"{skipped} of {n} bootstrap resamples had no edges (all empty or all solid) and were skipped"
+    if len(rows) >= 2:
+        for k in names:
+            v = np.array([row[k] for row in rows])
+            out["parameters"][k] = dict(std=float(v.std(ddof=1)), q05=float(np.quantile(v, 0.05)), q95=float(np.quantile(v, 0.95)))
+    return rows, out
+
+
+
+# -------------------------------------------------------------------------- figures
+
+
+def residual_rgb(measured: np.ndarray, simulated: np.ndarray) -> np.ndarray:
+    """Measured minus simulated: red +1 (printed, not simulated), blue -1, grey both, white neither."""
+    m, s = np.asarray(measured, bool), np.asarray(simulated, bool)
+    rgb = np.full(m.shape + (3,), 255, np.uint8)
+    rgb[m & s] = (190, 190, 190)
+    rgb[m & ~s] = (215, 40, 40)
+    rgb[~m & s] = (40, 90, 215)
+    return rgb
