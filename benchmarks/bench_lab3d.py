@@ -121,7 +121,11 @@ def main(argv=None) -> None:
         cfg = load_config(overrides=over)
         lay = cfg["layers"]
         px, dz = float(cfg["batch"]["pixel_size_um"]), float(lay["layer_um"])
-        att_lab = 1.0 / (lay["absorbance_cells_per_um"] + lay["absorbance_initiator_per_um"] * (1 - lay["bleaching"]))
+        # the lab's attenuation length one layer down (the initiator bleached once) and as a
+        # mean over the print's depth (bleached up to layers - 1 times)
+        mu = [lay["absorbance_cells_per_um"] + lay["absorbance_initiator_per_um"] * (1 - lay["bleaching"]) ** n
+              for n in range(1, a.layers)]
+        att_lab, att_deep = 1.0 / mu[0], len(mu) / sum(mu)
         print(f"lab {i}: layer {dz:g} um, att_length one layer down {att_lab:.1f} um, depth scatter "
               f"{lay['scatter_growth_um']:.3g} um, bleaching {lay['bleaching']:.2f}, axial blur "
               f"{lay['confocal']['axial_sigma_um']:.1f} um, z step {lay['confocal']['z_step_um']:g} um", flush=True)
@@ -161,7 +165,7 @@ def main(argv=None) -> None:
             sims = voxel_prints([trials[k] for k in held_ids], params, depth, dz, px)
             held = np.mean([metrics.iou(s, truth[k]) for s, k in zip(sims, held_ids)])
             print(f"  depth fit on {len(fit_ids)} prints ({t_fit:.0f} s): att_length {v['att_length_um']:.1f} "
-                  f"+- {sd['att_length_um']:.1f} um (lab {att_lab:.1f}), diffusion {v['diffusion_um']:.3g} "
+                  f"+- {sd['att_length_um']:.1f} um (lab {att_lab:.1f} one layer down, {att_deep:.1f} over the print), diffusion {v['diffusion_um']:.3g} "
                   f"+- {sd['diffusion_um']:.2g} um (lab {lay['scatter_growth_um']:.3g}), sigma {v['sigma_px']:.2f} "
                   f"+- {sd['sigma_px']:.2f} px (lab core {cfg['printer']['kernel']['sigma_um'] / px:.2f}), T {v['T']:.3f}; "
                   f"held-out voxel IoU against the truth {held:.4f}; objective {fit['objective']:.5f} "

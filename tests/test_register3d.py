@@ -111,3 +111,24 @@ def test_registered_stacks_calibrate_and_score(batch, tmp_path):
     assert {r["id"] for r in rows} == set(ms)
     assert all(0.5 < r["iou"] <= 1 for r in rows if r["status"] == "ok")
     assert (tmp_path / "scores" / "sections.png").is_file() and (tmp_path / "scores" / "metrics.tsv").is_file()
+
+
+def test_the_threshold_falloff_comes_from_the_dense_polymer_not_the_print_shape():
+    """A print grown beyond its masks (an overhang cured down to the floor) has a flat
+    dense level: no fall-off to undo, so its lower layers keep their voxels. A real
+    fall-off is found despite layers that did not cure as their mask says, either way up."""
+    from unscatter.imaging.stack import dense_falloff
+
+    L, S = 12, 40
+    z = (np.arange(L) + 0.5) * 40.0
+    solid = np.zeros((L, S, S), bool)
+    solid[:, 10:20, 10:20] = True
+    solid[8:, 10:30, 10:30] = True  # a deck over the top layers
+    grown = np.zeros((L, S, S))
+    grown[:, 10:30, 10:30] = 1.0  # the deck cured down to the floor, dense polymer everywhere
+    assert abs(dense_falloff(grown, solid, z)) > 1e4
+    rng = np.random.default_rng(0)
+    for f in (300.0, -500.0):
+        at = solid * np.exp(-z / f)[:, None, None] * (1 + 0.02 * rng.standard_normal((L, S, S)))
+        at[[2, 7]] *= 0.4  # two layers that cured less than their masks say
+        assert dense_falloff(at, solid, z) == pytest.approx(f, rel=0.1)

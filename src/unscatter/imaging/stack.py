@@ -18,8 +18,12 @@ batch.yaml with layer_um and z_step_um.
    (light lost on the way in and out) comes from a fit with the masks' areas
    (``model_r2`` says how well the masks alone explain the profile).
 3. **Voxel print.** Each layer is read at its centre depth (linear interpolation between
-   slices) and thresholded at ``level`` of the stack's dense-polymer level (the 95th
-   percentile of layer-centre signal over the masks' solid voxels).
+   slices), the signal's fall-off with height is undone, and the layers are thresholded
+   at ``level`` of the stack's dense-polymer level (the 95th percentile of layer-centre
+   signal over the masks' solid voxels). That fall-off (``dense_falloff_um``) comes from
+   the dense polymer's brightness layer by layer (a robust fit of its log against
+   height), not from the axial fit: a print grown beyond its masks would read there as
+   fall-off and lose its lower layers.
 4. **QC.** A print fails when its 2-D registration fails (the reason is kept), when the
    axial profile is not explained (R^2 below ``min_axial_r2``), or when the stack does not
    cover the print's depth.
@@ -198,7 +202,7 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             r2 = rows2[mid]
             row = dict(id=mid, status=r2["status"], reason=r2["reason"], layers=len(masks[mid]), slices=len(stacks[mid]),
                        rotation_deg=r2["rotation_deg"], scale=r2["scale"], shift_x=r2["shift_x"], shift_y=r2["shift_y"],
-                       score=r2["score"], bottom_um="", axial_sigma_um="", falloff_um="", axial_r2="", axial_model_r2="",
+                       score=r2["score"], bottom_um="", axial_sigma_um="", falloff_um="", dense_falloff_um="", axial_r2="", axial_model_r2="",
                        solid_fraction="",
                        mask=os.path.relpath((batch_dir / "masks" / mid).resolve(), Path(out_dir).resolve()))
             if r2["status"] != "ok":
@@ -208,7 +212,8 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
             M = np.array([[float(r2[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
             vox, info, sheet = _voxel_print(stacks[mid] - offset, masks[mid], M, layer_um, step, level)
             row.update(bottom_um=round(info["bottom_um"], 2), axial_sigma_um=info["axial_sigma_um"],
-                       falloff_um=info["falloff_um"], axial_model_r2=round(info["model_r2"], 4),
+                       falloff_um=info["falloff_um"], dense_falloff_um=round(info["dense_falloff_um"], 1),
+                       axial_model_r2=round(info["model_r2"], 4),
                        axial_r2=round(info["r2"], 4), solid_fraction=round(float(vox.mean()), 5))
             reasons = []
             if not info["r2"] >= min_axial_r2:
@@ -236,6 +241,23 @@ def register_stacks(batch_dir, out_dir, level: float = 0.5, skip_failed: bool = 
     return rows
 
 
+def dense_falloff(at: np.ndarray, solid: np.ndarray, z_um: np.ndarray, min_layers: int = 3) -> float:
+    """The signal's fall-off length with height in the print (um; inf: none; negative:
+    the signal grows with height, as when the stack is imaged from above), from the dense polymer's
+    brightness layer by layer: the 95th percentile of each layer's signal over its mask's
+    solid pixels, whose log is fitted against depth by Theil-Sen (robust to the layers
+    that did not cure as their mask says). Not from the axial profile, where a print
+    that grew beyond its masks (an overhang cured down to the floor) reads as fall-off."""
+    from scipy.stats import theilslopes
+
+    levels = np.array([np.percentile(a[m], 95) if m.sum() >= 16 else np.nan for a, m in zip(at, solid)])
+    ok = np.isfinite(levels) & (levels > 0)
+    if ok.sum() < min_layers:
+        return float("inf")
+    slope = float(theilslopes(np.log(levels[ok]), np.asarray(z_um, float)[ok])[0])
+    return -1.0 / slope if slope != 0 else float("inf")  # negative: brighter with depth (imaged from above)
+
+
 def _voxel_print(stack: np.ndarray, layers: np.ndarray, M: np.ndarray, layer_um: float, step: float, level: float):
     """(voxel print (L, S, S) bool, axial fit, overlay sheet) of one stack at pose M."""
     L, S, _ = layers.shape
@@ -254,7 +276,9 @@ def _voxel_print(stack: np.ndarray, layers: np.ndarray, M: np.ndarray, layer_um:
     k0 = np.clip(np.floor(centres).astype(int), 0, len(stack) - 2)
     f = np.clip(centres - k0, 0, 1)[:, None, None]
     at = np.nan_to_num((1 - f) * sig[k0] + f * sig[k0 + 1], nan=0.0)
-    at = at * np.exp(centres * step / info["falloff_um"])[:, None, None]  # undo the fall-off with depth
+    falloff = dense_falloff(at, solid, centres * step)
+    info["dense_falloff_um"] = falloff
+    at = at * np.exp(centres * step / falloff)[:, None, None]  # undo the fall-off with depth
     dense = float(np.percentile(at[solid], 95)) if solid.any() else float(np.nanmax(at))
     vox = at >= level * dense
     # overlay: the layer-centre slices side by side, the layer masks' outlines in red
