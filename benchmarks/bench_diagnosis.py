@@ -169,14 +169,19 @@ def lab_prints(out: Path, name: str, count: int, size: int) -> Path:
 # ------------------------------------------------------------------ random labs
 
 # one effect beyond Eq. 1 per random lab (or none); "hotspot" is outside the library
-RANDOM_EFFECTS = ("none", "heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field", "edge_offset", "hotspot")
-OUTSIDE = {"hotspot"}
+RANDOM_EFFECTS = ("none", "heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field", "edge_offset", "outside")
+# physics of the lab that the model library lacks: an "outside" lab has one or two of them
+OUTSIDE_PHYSICS = ("hotspot", "oxygen_inhibition", "kernel_dose_growth")
+OUTSIDE = {"outside", *OUTSIDE_PHYSICS}
 
 
-def random_effect_lab(rng: np.random.Generator, effect: str) -> tuple[dict, str]:
+def random_effect_lab(rng: np.random.Generator, effect: str, strength: str = "wide") -> tuple[dict, str]:
     """Printer overrides of a random lab (``unscatter.lab.random_lab``: optics, noise and
-    cure over wide ranges) with every effect beyond Eq. 1 off but ``effect``, drawn at a
-    magnitude that changes prints by more than the lab's noise. Returns (overrides, magnitude)."""
+    cure over wide ranges) with every effect beyond Eq. 1 off but ``effect``. With
+    ``strength`` 'wide' the effect's magnitude is drawn log-uniformly from barely
+    detectable to strong (the detection limit is read off the results); 'strong' keeps to
+    the upper part. ``outside``: one or two of ``OUTSIDE_PHYSICS`` (not in the library).
+    Returns (overrides, magnitude)."""
     from unscatter.lab import random_lab
 
     p = random_lab(rng)["printer"]
@@ -186,33 +191,53 @@ def random_effect_lab(rng: np.random.Generator, effect: str) -> tuple[dict, str]
     p["dose_gamma"] = 1.0
     p["edge_offset_um"] = 0.0
     sign = 1.0 if rng.random() < 0.5 else -1.0
+    # the share of each effect's range drawn: log-uniform over [lo, 1] of its strong end
+    lo = 0.08 if strength == "wide" else 0.5
+
+    def amount(top: float, floor: float = 0.0) -> float:
+        return floor + (top - floor) * float(np.exp(rng.uniform(np.log(lo), 0.0)))
+
     if effect == "none":
         mag = "-"
     elif effect == "heavy_tail":
-        f, lam = float(rng.uniform(0.15, 0.4)), float(rng.uniform(25.0, 90.0))
+        f, lam = amount(0.4), float(rng.uniform(25.0, 90.0))
         p["kernel"]["heavy_tail"] = {"fraction": f, "length_um": lam}
-        mag = f"tail {f:.2f} x {lam:.0f} um"
+        mag = f"tail {f:.3f} x {lam:.0f} um"
     elif effect == "anisotropy":
-        r, a = float(rng.uniform(1.3, 1.8)), float(rng.uniform(0.0, 180.0))
+        r, a = 1.0 + amount(0.8), float(rng.uniform(0.0, 180.0))
         p["kernel"]["anisotropy"] = {"ratio": r, "angle_deg": a}
-        mag = f"ratio {r:.2f} at {a:.0f} deg"
+        mag = f"ratio {r:.3f} at {a:.0f} deg"
     elif effect == "dose_nonlinearity":
-        g = float(rng.uniform(1.3, 1.8)) if sign > 0 else float(rng.uniform(0.6, 0.8))
+        g = 1.0 + amount(0.8) if sign > 0 else 1.0 - amount(0.4)
         p["dose_gamma"] = g
-        mag = f"gamma {g:.2f}"
+        mag = f"gamma {g:.3f}"
     elif effect == "illumination_field":
-        q = sign * float(rng.uniform(0.15, 0.3))
+        q = sign * amount(0.25)  # the library's bound
         p["illumination"]["quartic"] = q
-        mag = f"quartic {q:+.2f}"
+        mag = f"quartic {q:+.3f}"
     elif effect == "edge_offset":
-        e = sign * float(rng.uniform(3.0, 7.0))
+        e = sign * amount(7.0)
         p["edge_offset_um"] = e
-        mag = f"edge {e:+.1f} um"
-    elif effect == "hotspot":
-        hs = dict(amplitude=float(rng.uniform(0.2, 0.4)), x0=float(rng.uniform(-0.6, 0.6)), y0=float(rng.uniform(-0.6, 0.6)),
-                  width=float(rng.uniform(0.12, 0.3)))
-        p["illumination"]["hotspot"] = hs
-        mag = f"hotspot {hs['amplitude']:.2f} w {hs['width']:.2f}"
+        mag = f"edge {e:+.2f} um"
+    elif effect in OUTSIDE:
+        kinds = [effect] if effect != "outside" else list(rng.choice(OUTSIDE_PHYSICS, size=int(rng.integers(1, 3)),
+                                                                     replace=False))
+        parts = []
+        for kind in kinds:
+            if kind == "hotspot":
+                hs = dict(amplitude=amount(0.4), x0=float(rng.uniform(-0.6, 0.6)), y0=float(rng.uniform(-0.6, 0.6)),
+                          width=float(rng.uniform(0.12, 0.3)))
+                p["illumination"]["hotspot"] = hs
+                parts.append(f"hotspot {hs['amplitude']:.2f} w {hs['width']:.2f}")
+            elif kind == "oxygen_inhibition":
+                ox = dict(strength=amount(0.5), length_um=float(rng.uniform(8.0, 40.0)))
+                p["oxygen_inhibition"] = ox
+                parts.append(f"O2 {ox['strength']:.2f} over {ox['length_um']:.0f} um")
+            else:
+                k = amount(0.8)
+                p["kernel_dose_growth"] = k
+                parts.append(f"kernel x{1 + k:.2f} at full grey")
+        mag = " + ".join(parts)
     else:
         raise ValueError(effect)
     return {"printer": p}, mag
@@ -276,6 +301,7 @@ def random_labs(args) -> None:
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
+           + (f" --strength {args.strength}" if args.strength != "wide" else "")
            + (f" --objective {args.objective}" if args.objective else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -293,7 +319,7 @@ def random_labs(args) -> None:
     lines = [head]
     for li, effect in enumerate(order[: args.random_labs]):
         lab_seed = int(rng.integers(1 << 31))
-        over, mag = random_effect_lab(np.random.default_rng(lab_seed), effect)
+        over, mag = random_effect_lab(np.random.default_rng(lab_seed), effect, args.strength)
         cfg = load_config(overrides=over)
         px = cfg["batch"]["pixel_size_um"]
         level = cfg["microscope"]["level"]
@@ -357,23 +383,65 @@ def random_labs(args) -> None:
     print("\n" + summary(lab_rows))
 
 
+def power(rows: list) -> list[str]:
+    """The power study's tables: confusion matrix (true effect x what was named), the
+    library effects named against their size (1 - IoU of the lab's noise-free prints with
+    and without the effect), false alarms on no-effect labs, outside effects flagged."""
+    named_cols = ["-", *[e for e in RANDOM_EFFECTS if e not in ("none", "outside")], "unexplained", "several"]
+    out = ["", "confusion (rows: the lab's effect; columns: what the diagnosis named; unexplained: the residual flagged "
+           "with nothing named)", f"{'':<20}" + "".join(f"{c[:11]:>12}" for c in named_cols)]
+    for eff in dict.fromkeys(r["effect"] for r in rows):
+        counts = dict.fromkeys(named_cols, 0)
+        for r in (r for r in rows if r["effect"] == eff):
+            named = [] if r["named"] == "-" else r["named"].split(",")
+            col = "several" if len(named) > 1 else named[0] if named else ("unexplained" if r["unexplained"] != "-" else "-")
+            counts[col] += 1
+        out.append(f"{eff:<20}" + "".join(f"{counts[c]:>12}" for c in named_cols))
+    lib = [r for r in rows if r["effect"] not in OUTSIDE and r["effect"] != "none"]
+    if lib:
+        out += ["", "library effects named against their size (1 - IoU, the lab's noise-free prints with vs without):"]
+        edges = [0.0, 0.002, 0.005, 0.01, 0.02, 0.05, 1.0]
+        for a, b in zip(edges[:-1], edges[1:]):
+            sel = [r for r in lib if a <= 1 - r["effect_iou"] < b]
+            if sel:
+                right = sum(r["verdict"] == "right" for r in sel)
+                out.append(f"  {a:.3f}-{b:.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
+        sizes = sorted(1 - r["effect_iou"] for r in lib)
+        limit = next((x for x in sizes if all(r["verdict"] == "right" for r in lib if 1 - r["effect_iou"] >= x)
+                      and sum(1 - r["effect_iou"] >= x for r in lib) >= 3), None)
+        above = [r for r in lib if limit is not None and 1 - r["effect_iou"] >= limit]
+        out.append("  smallest size above which every effect (at least 3) was named right: "
+                   + (f"{limit:.4f} ({len(above)} labs)" if limit is not None else "none"))
+    none = [r for r in rows if r["effect"] == "none"]
+    outside = [r for r in rows if r["effect"] in OUTSIDE]
+    if none:
+        fa = sum(r["verdict"] == "false alarm" for r in none)
+        out.append(f"no-effect labs given an effect or flagged: {fa} of {len(none)} ({100 * fa / len(none):.0f} %)")
+    if outside:
+        fl = sum(r["unexplained"] != "-" for r in outside)
+        out.append(f"outside effects flagged unexplained: {fl} of {len(outside)} ({100 * fl / len(outside):.0f} %)")
+    return out
+
+
 def summary(rows: list) -> str:
     verdicts = ("right", "partial", "wrong", "missed", "false alarm")
     counts = {v: sum(r["verdict"] == v for r in rows) for v in verdicts}
     gap_sel = [r["iou_floor"] - r["iou_selected"] for r in rows]
     gap_eq1 = [r["iou_floor"] - r["iou_eq1"] for r in rows]
     pgap = [r["patterns_iou_floor"] - r["patterns_iou_selected"] for r in rows]
-    plain = [r for r in rows if r["effect"] in ("none", "dose_nonlinearity", "illumination_field", "edge_offset", "hotspot")]
+    plain = [r for r in rows if r["effect"] in ("none", "dose_nonlinearity", "illumination_field", "edge_offset")]
     sig = [r["sigma_eq1_px"] / r["sigma_lab_px"] for r in plain]
     sig_sel = [r["sigma_selected_px"] / r["sigma_lab_px"] for r in rows if r["effect"] != "heavy_tail"]
-    T = [r["T_selected"] / r["T_lab"] for r in rows if r["effect"] in ("none", "illumination_field", "hotspot", "anisotropy")]
-    out = [f"detection over {len(rows)} labs: " + ", ".join(f"{v} {n}" for v, n in counts.items()),
+    T = [r["T_selected"] / r["T_lab"] for r in rows if r["effect"] in ("none", "illumination_field", "anisotropy")]
+    out = [f"detection over {len(rows)} labs: " + ", ".join(f"{v} {n}" for v, n in counts.items())]
+    out += power(rows)
+    out += [
            f"held-out IoU gap to the floor (floor - model), median [max]: Eq. 1 {np.median(gap_eq1):.4f} [{max(gap_eq1):.4f}], "
            f"selected {np.median(gap_sel):.4f} [{max(gap_sel):.4f}]; test patterns only, selected {np.median(pgap):.4f}",
            f"sigma fitted / lab: Eq. 1 on labs with a Gaussian core and no kernel effect, median {np.median(sig) if sig else float('nan'):.3f} "
            f"(range {min(sig, default=float('nan')):.3f}..{max(sig, default=float('nan')):.3f}); selected model, all labs but heavy tail, "
            f"median {np.median(sig_sel):.3f}",
-           f"T selected / lab (labs where T is identifiable: none, illumination, hotspot, anisotropy): median "
+           f"T selected / lab (labs where T is identifiable: none, illumination, anisotropy): median "
            f"{np.median(T) if T else float('nan'):.3f}",
            f"time per lab: calibration median {np.median([r['cal_s'] for r in rows]):.0f} s, diagnosis median "
            f"{np.median([r['diag_s'] for r in rows]):.0f} s (max {max(r['diag_s'] for r in rows):.0f} s)"]
@@ -395,7 +463,10 @@ def main():
     ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (fitting.OBJECTIVES; "
                     "default: its default); the diagnosis uses the calibration's")
     ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
-    ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)})")
+    ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)}; "
+                    f"outside: one or two of {','.join(OUTSIDE_PHYSICS)}, or name one of them)")
+    ap.add_argument("--strength", choices=("wide", "strong"), default="wide",
+                    help="random labs: effect magnitudes from barely detectable to strong (wide), or strong only")
     args = ap.parse_args()
     if args.random_labs:
         random_labs(args)

@@ -126,3 +126,23 @@ def test_cli_compensate3d(tmp_path, params):
                                     "--depth", str(tmp_path / "depth.yaml"), "-o", str(tmp_path / "o2"), "--name", "x"])
     assert bad.exit_code == 2 and "x" in bad.output
     assert read_design3d(tmp_path / "designs" / "tube").shape == (4, 48, 48)
+    # the print job frames every design with registration marks in a margin, and the
+    # scoring cuts a print of it back to the design's field
+    from unscatter.compensation3d import frame3d, job_margin, unframe3d, write_job3d
+    from unscatter.io import read_tsv
+
+    rows = write_job3d(tmp_path / "designs", out, tmp_path / "params.yaml", tmp_path / "depth.yaml", tmp_path / "job")
+    m = job_margin(32)
+    assert {r["id"] for r in rows} == {"bridge__ilt", "bridge__identical"}
+    assert {int(r["margin_px"]) for r in read_tsv(tmp_path / "job" / "job.tsv")} == {m}
+    ilt = np.stack([read_mask(tmp_path / "job" / "masks" / "bridge__ilt" / f"{j:03d}.png") for j in range(4)])
+    assert ilt.shape == (4, 32 + 2 * m, 32 + 2 * m)
+    assert np.array_equal(ilt[:, m:m + 32, m:m + 32], np.stack([read_mask(out / "bridge" / f"{j:03d}.png") for j in range(4)]))
+    ring = np.ones(ilt.shape[1:], bool)
+    ring[m // 2:-(m // 2), m // 2:-(m // 2)] = False
+    marks = ilt[0] > 0
+    assert marks[ring].sum() > 0 and not marks[~ring & ~np.pad(np.ones((32, 32), bool), m)].any()  # marks in the outer half
+    framed = frame3d(bridge(L=4, n=32), m)
+    assert np.array_equal(unframe3d(framed, 32, "x"), bridge(L=4, n=32))
+    with pytest.raises(InputError, match="fits neither"):
+        unframe3d(framed[:, 1:, 1:], 32, "x")

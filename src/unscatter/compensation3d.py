@@ -217,11 +217,48 @@ def _designs3d(designs, names=None) -> dict:
     return {k: read_design3d(v) for k, v in found.items()}
 
 
+def job_margin(n: int) -> int:
+    """The margin (DMD pixels) around an n x n design in the 3-D print job: room for the
+    registration marks, kept clear of the design by half of it."""
+    return max(12, n // 6)
+
+
+def frame3d(layers: np.ndarray, margin: int) -> np.ndarray:
+    """The layer masks (L, n, n) in a field ``margin`` larger on each side, with
+    registration marks through every layer in three corners of the margin (an L, a bar,
+    a square: their places fix the pose of a print that alone would not, such as a hollow
+    tube, whose rotation and scale its one ring cannot tell), each in the margin's outer
+    half."""
+    L, n, _ = layers.shape
+    N = n + 2 * margin
+    out = np.zeros((L, N, N), layers.dtype)
+    out[:, margin:margin + n, margin:margin + n] = layers
+    w, a, full = max(2, margin // 3), N // 5, np.iinfo(np.uint8).max if layers.dtype == np.uint8 else 1
+    out[:, 1:1 + w, 1:1 + a] = full  # an L in the top left corner
+    out[:, 1:1 + a, 1:1 + w] = full
+    out[:, 1:1 + w, N - 1 - a // 2:N - 1] = full  # a bar in the top right
+    out[:, N - 1 - w:N - 1, N - 1 - w:N - 1] = full  # a square in the bottom right
+    return out
+
+
+def unframe3d(vox: np.ndarray, n: int, what) -> np.ndarray:
+    """The design's field of a voxel print of a framed job mask (``frame3d``)."""
+    N = vox.shape[-1]
+    if N == n:
+        return vox
+    m = (N - n) // 2
+    if vox.shape[-2] != N or N - n != 2 * m or m != job_margin(n):
+        raise InputError(what, f"voxel print of {vox.shape[-2]}x{N} px fits neither its design ({n}x{n}) nor its "
+                         f"print job ({n + 2 * job_margin(n)} px with the registration marks' margin)")
+    return vox[..., m:m + n, m:m + n]
+
+
 def write_job3d(designs, compensated, params, depth_path, out_dir, names=None) -> list[dict]:
     """The print job of the 3-D benchmark: masks/<design>__ilt/ (the compensated layer
     masks) and masks/<design>__identical/ (the design at the model's best uniform dose),
-    job.tsv and a batch.yaml to complete (layer_um from the depth file). ``names``: the
-    designs (default: every design compensated)."""
+    each framed by a margin with registration marks (``frame3d``), job.tsv and a
+    batch.yaml to complete (layer_um from the depth file). ``names``: the designs
+    (default: every design compensated)."""
     from .io import output_dir, read_tsv, write_png, write_tsv, write_yaml
     from .settings import PAPER_PIXEL_SIZE_UM
 
@@ -241,11 +278,14 @@ def write_job3d(designs, compensated, params, depth_path, out_dir, names=None) -
                 raise InputError(Path(compensated) / name, f"{len(files)} layer masks for a design of {len(d)} layers")
             # the dose compensate3d found for the same model, else found here
             dose = float(known[name]) if name in known else best_uniform_dose(d, p, depth, px)[0]
-            for j, f in enumerate(files):
-                write_png(tmp / "masks" / f"{name}__ilt" / f"{j:03d}.png", read_mask(f))
-                write_png(tmp / "masks" / f"{name}__identical" / f"{j:03d}.png", (d[j] * round(255 * dose)).astype(np.uint8))
-            rows += [dict(id=f"{name}__ilt", design=name, method="ilt", grey=""),
-                     dict(id=f"{name}__identical", design=name, method="identical", grey=dose)]
+            m = job_margin(d.shape[-1])
+            ilt = frame3d(np.stack([read_mask(f) for f in files]), m)
+            same = frame3d((d * round(255 * dose)).astype(np.uint8), m)
+            for j in range(len(d)):
+                write_png(tmp / "masks" / f"{name}__ilt" / f"{j:03d}.png", ilt[j])
+                write_png(tmp / "masks" / f"{name}__identical" / f"{j:03d}.png", same[j])
+            rows += [dict(id=f"{name}__ilt", design=name, method="ilt", grey="", margin_px=m),
+                     dict(id=f"{name}__identical", design=name, method="identical", grey=dose, margin_px=m)]
         write_tsv(tmp / "job.tsv", rows)
         write_yaml(tmp / "batch.yaml", dict(pixel_size_um=px, exposure_s=20.0, max_intensity_mw_cm2=20.8, material="FILL IN",
                                             notes="FILL IN: 3-D benchmark prints", layer_um=depth["layer_um"],
@@ -270,7 +310,8 @@ def score3d_prints(prints: dict, designs: dict, pixel_size_um: float, layer_um: 
 
 def score3d_batch(registered, designs, out_dir, names=None) -> list[dict]:
     """Score a registered 3-D benchmark batch (``register_stacks`` output) against the
-    designs: metrics.tsv and sections.png (xz and yz cross-sections through the middle of
+    designs (a print of a framed job mask is cut back to its design's field):
+    metrics.tsv and sections.png (xz and yz cross-sections through the middle of
     each design, the design's outline in red) in ``out_dir``."""
     from .io import output_dir, read_print, read_tsv, read_yaml, write_tsv
 
@@ -282,7 +323,8 @@ def score3d_batch(registered, designs, out_dir, names=None) -> list[dict]:
         name = r["id"].partition("__")[0]
         if name not in ds:
             continue
-        prints[r["id"]] = (np.stack([read_print(registered / r["id"] / f"{j:03d}.png") for j in range(len(ds[name]))])
+        prints[r["id"]] = (unframe3d(np.stack([read_print(registered / r["id"] / f"{j:03d}.png")
+                                               for j in range(len(ds[name]))]), ds[name].shape[-1], registered / r["id"])
                            if r["status"] == "ok" else None)
     rows = score3d_prints(prints, ds, float(meta["pixel_size_um"]), float(meta["layer_um"]))
     with output_dir(out_dir, command="benchmark3d score", inputs=[registered, designs]) as tmp:

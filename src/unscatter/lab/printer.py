@@ -30,6 +30,8 @@ class Printer:
         self.shape = (fft.next_fast_len(n, real=True),) * 2
         self.field = self._illumination()
         self.kernel_ft = self._kernel_ft()
+        grow = float(cfg.get("kernel_dose_growth") or 0.0)
+        self.wide_ft = self._kernel_ft(cfg["kernel"]["sigma_um"] * (1.0 + grow)) if grow > 0 else None
 
     # -- optics --------------------------------------------------------------
     def _illumination(self) -> np.ndarray:
@@ -75,7 +77,22 @@ class Printer:
     # -- printing ------------------------------------------------------------
     def dose(self, mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Absorbed dose on the padded grid (1 = full grey at the centre, large area)."""
-        d = fft.irfft2(fft.rfft2(self.exposure(mask)) * self.kernel_ft, s=self.shape)
+        e = self.exposure(mask)
+        if self.wide_ft is not None:  # effect: brighter pixels scatter wider (sigma grows with grey)
+            g = np.zeros(self.shape)
+            p = self.pad
+            g[p : p + self.size, p : p + self.size] = mask.astype(np.float64) / 255.0
+            d = fft.irfft2(fft.rfft2(e * (1 - g)) * self.kernel_ft + fft.rfft2(e * g) * self.wide_ft, s=self.shape)
+        else:
+            d = fft.irfft2(fft.rfft2(e) * self.kernel_ft, s=self.shape)
+        ox = self.cfg.get("oxygen_inhibition")
+        if ox and ox.get("strength", 0) > 0:
+            # effect: oxygen diffusing in from the uncured ink around a feature consumes
+            # radicals near its edges: the dose lost grows as the neighbourhood (over
+            # length_um) is less exposed, so thin lines and corners lose most
+            T = float(self.cfg["cure"]["threshold"])
+            near = ndimage.gaussian_filter(np.minimum(d / T, 1.0), float(ox["length_um"]) / self.pixel_um)
+            d = d * (1.0 - float(ox["strength"]) * (1.0 - near))
         noise = self.cell_noise(rng)
         scale = 1.0 + self.cfg["cells"]["print_to_print"] * rng.standard_normal()
         return np.maximum(d * (1.0 + noise) * scale, 0.0)
