@@ -16,6 +16,12 @@ bootstrap) then ``diagnose`` (defaults, or ``quick``) run on them. Scored on 16 
 paper masks and 16 test patterns (gratings, near-threshold, dots, ...) against the lab's
 noisy prints: IoU of Eq. 1, of the selected model and of the floor (the per-pixel
 majority of 11 other prints of the lab: the best its own printer predicts one print).
+Effect sizes are drawn log-uniformly from barely detectable to strong (``--strength
+strong``: the upper part only); "outside" labs hold one or two of OUTSIDE_PHYSICS (a
+lamp hot spot, oxygen inhibition at edges, a kernel that widens with grey level). The
+summary adds the power study's tables: the confusion matrix, detection against the
+effect's size and against what Eq. 1 leaves to explain, false alarms and outside
+effects flagged (``--summarize labs.tsv`` reprints them).
 "1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
 it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
 
@@ -406,6 +412,12 @@ def power(rows: list) -> list[str]:
             if sel:
                 right = sum(r["verdict"] == "right" for r in sel)
                 out.append(f"  {a:.3f}-{b:.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
+        out.append("library effects named against what Eq. 1 leaves to explain (held-out IoU: the floor minus Eq. 1's):")
+        for a, b in zip([-1.0, 0.0, 0.005, 0.01, 0.02, 0.05], [0.0, 0.005, 0.01, 0.02, 0.05, 1.0]):
+            sel = [r for r in lib if a <= r["iou_floor"] - r["iou_eq1"] < b]
+            if sel:
+                right = sum(r["verdict"] == "right" for r in sel)
+                out.append(f"  {a:+.3f}..{b:+.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
         sizes = sorted(1 - r["effect_iou"] for r in lib)
         limit = next((x for x in sizes if all(r["verdict"] == "right" for r in lib if 1 - r["effect_iou"] >= x)
                       and sum(1 - r["effect_iou"] >= x for r in lib) >= 3), None)
@@ -467,7 +479,23 @@ def main():
                     f"outside: one or two of {','.join(OUTSIDE_PHYSICS)}, or name one of them)")
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide",
                     help="random labs: effect magnitudes from barely detectable to strong (wide), or strong only")
+    ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
+                    help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()
+    if args.summarize:
+        from unscatter.io import read_tsv
+
+        rows = []
+        for r in read_tsv(args.summarize):
+            row = dict(r)
+            for k, v in r.items():
+                try:
+                    row[k] = float(v) if k not in ("named", "unexplained", "verdict", "effect", "magnitude") else v
+                except ValueError:
+                    pass
+            rows.append(row)
+        print(summary(rows))
+        return
     if args.random_labs:
         random_labs(args)
         return
