@@ -257,6 +257,46 @@ def test_a_print_that_is_one_feature_has_its_scale_from_its_size_only():
     assert size_spread(T_row, "similarity") < 0.4
 
 
+def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():
+    """A Siemens star is one feature: where its spoke tips lie against its spoke sides is
+    what the template predicts worst, so without a bound on its size its scale is free;
+    a faint ripple inside a block (a fine grating printed as one) fixes nothing either."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import size_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    star = patterns.siemens_star(np.random.default_rng(2), spokes=16)
+    T_star = tmpl(tmpl.padded(star), x)
+    assert size_spread(T_star, "similarity") > 5.0
+    assert size_spread(T_star, "similarity", 0.2) < 1.5
+    block = np.zeros((512, 512), np.float32)
+    block[150:400, 100:420] = 1.0
+    T_ripple = block * (1.0 + 0.03 * np.sin(2 * np.pi * np.arange(512)[:, None] / 4.0)) * np.linspace(1.0, 0.6, 512)[None, :]
+    T_ripple = np.pad(cv2_blur(T_ripple.astype(np.float32), 2.0), MARGIN)
+    assert size_spread(T_ripple, "similarity") > 5.0
+
+
+def cv2_blur(a, sigma):
+    import cv2
+
+    return cv2.GaussianBlur(a, (0, 0), sigma)
+
+
+def test_a_print_near_the_cure_threshold_is_told_apart():
+    from unscatter.imaging.batch import near_threshold_share
+
+    pred = np.zeros((128, 128), np.float32)
+    pred[30:100, 20:110] = 1.0
+    rng = np.random.default_rng(0)
+    dense = pred * 2.0 + rng.normal(0, 0.05, pred.shape)
+    textured = pred * (1.1 + 0.3 * rng.standard_normal(pred.shape)) + rng.normal(0, 0.05, pred.shape)
+    assert near_threshold_share(dense.astype(np.float32), pred, 1.0, 1.2) == 0.0
+    assert near_threshold_share(textured.astype(np.float32), pred, 1.0, 1.2) > 0.3
+    assert near_threshold_share(dense.astype(np.float32), np.zeros_like(pred), 1.0, 1.2) == 0.0
+
+
 def test_feature_sizes_are_known_as_well_as_the_batch_shows():
     from types import SimpleNamespace
 

@@ -60,6 +60,10 @@ class Settings:
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
+    near_threshold_margin: float = 1.2  # a print's core below this many times the threshold is near the cure threshold ...
+    near_threshold_share: float = 0.15  # ... and a print whose pose rests on its size fails with more of its core there
+    faint_fraction: float = 0.9  # an image too faint to register whose brightest polymer reaches this share of the
+    # threshold is failed (whether it printed cannot be told at the image's resolution), not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -74,6 +78,7 @@ class PoseChoice:
     evidence: float = float("inf")  # z of the chosen pose over the nearest distinct rival
     rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
     tried: int = 0
+    by_size: bool = False  # its scale rests on the size of its features more than on where they lie
 
 
 # --------------------------------------------------------------------------- steps
@@ -248,14 +253,22 @@ def misfit_px(printed: np.ndarray, predicted: np.ndarray, thr: float) -> float:
     return float(np.count_nonzero((printed ^ solid) & sure) / max(edge / 2, 1.0))
 
 
+def determinacy_only(reason: str) -> bool:
+    """Whether a QC reason only says that the pose is ambiguous or not determined (the fit
+    itself converged, in range, well correlated)."""
+    return bool(reason) and all(r.startswith(("ambiguous", "pose not determined")) for r in reason.split("; "))
+
+
 def mismatched(rows: list[dict], s: Settings) -> dict:
     """Prints that disagree with their mask's predicted print far more than the batch's
     other prints do (a swapped or mislabelled image): misfit above ``mismatch_factor``
     times the batch median, ``mismatch_sigmas`` robust sigmas (1.4826 MAD, on the log
     misfit) above it but at most ``mismatch_factor_max`` times it, and ``min_misfit_px`` at
-    least. With fewer than five prints to compare, ``max_misfit_px`` alone."""
+    least. With fewer than five prints to compare, ``max_misfit_px`` alone. The batch's
+    prints to compare with are the ``ok`` ones and those that failed only because their
+    pose is ambiguous or not determined (``determinacy_only``): their fits are as good."""
     vals = {r["id"]: r["misfit"] for r in rows if isinstance(r.get("misfit"), float) and np.isfinite(r["misfit"])}
-    ref = [r["misfit"] for r in rows if r["status"] == "ok" and r["id"] in vals]
+    ref = [r["misfit"] for r in rows if (r["status"] == "ok" or determinacy_only(r["reason"])) and r["id"] in vals]
     if len(ref) < 5:
         return {k: f"misfit {v:.1f} px per edge px above {s.max_misfit_px}" for k, v in vals.items() if v > s.max_misfit_px}
     lv = np.log(np.maximum(np.array(ref), 1e-3))
@@ -267,6 +280,20 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
     lim = max(med + spread, np.log(s.min_misfit_px))
     return {k: f"misfit {v:.1f} px per edge px, the batch's median {np.exp(med):.2f}" for k, v in vals.items()
             if np.log(max(v, 1e-3)) > lim}
+
+
+def near_threshold_share(reg: np.ndarray, predicted: np.ndarray, thr: float, margin: float, erode: int = 3) -> float:
+    """The share of a print's core (its predicted print above half its maximum, ``erode``
+    px in from the edge) where the registered image, smoothed over about a pixel, is below
+    ``margin`` times the threshold: how much of the print cured only just. The edges of
+    such a print lie where its dose crosses the cure threshold, which moves by pixels with
+    a few percent of dose."""
+    top = float(np.max(predicted))
+    core = ndimage.binary_erosion(predicted >= 0.5 * top, iterations=erode)
+    if top <= 0 or not core.any():
+        return 0.0
+    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), 1.0)
+    return float(np.mean(reg_s[core] < margin * thr))
 
 
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
@@ -384,14 +411,22 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
-    empty = set()
+    empty, faint = set(), {}
     for mid, k in corr.items():
         if mid in odd:
             continue
         n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * k.noise))) if np.isfinite(thr) else 0
         if n_above < s.min_print_px:
-            empty.add(mid)
-    todo = [mid for mid in ids if mid not in empty and mid not in odd and masks[mid].max() > 0]
+            peak = float(smooth[mid].max())
+            if np.isfinite(thr) and peak >= max(s.faint_fraction * thr, 6 * k.noise):
+                # thin lines or dots that cured can image below the threshold (the microscope's
+                # blur spreads them): a peak this close to it is no evidence that nothing printed
+                faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold in "
+                              f"{n_above} px (fewer than {s.min_print_px}); whether it printed cannot be told at this "
+                              "image's resolution")
+            else:
+                empty.add(mid)
+    todo = [mid for mid in ids if mid not in empty and mid not in faint and mid not in odd and masks[mid].max() > 0]
     bar.total = 2 * len(ids) + 2 * len(todo)
     bar.refresh()
 
@@ -471,6 +506,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     for mid, (f, T, sd) in zip(todo, pool.map(held, todo)):
         f.size_sd = size_spread(T, s.mode, sd)
         choices[mid].fit = f
+        choices[mid].by_size = spreads[mid][1] > s.max_pose_sd
     del spreads
 
     # 6. warp, threshold, QC, write
@@ -481,6 +517,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
+            return row, None
+        if mid in faint:
+            row.update(status="failed", reason=faint[mid])
             return row, None
         if mid in empty:
             printed = np.zeros((design_px, design_px), bool)
@@ -524,6 +563,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd})")
+        near = near_threshold_share(reg, tpl, thr, s.near_threshold_margin)
+        if ch.by_size and near > s.near_threshold_share:
+            reasons.append(f"pose not determined by the print: its scale rests on the size of a feature that cured near the "
+                           f"threshold ({100 * near:.0f} % of its core below {s.near_threshold_margin:g} times the threshold), "
+                           "a size no template predicts")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         row["solid_fraction"] = round(float(printed.mean()), 5)
