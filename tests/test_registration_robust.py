@@ -284,19 +284,6 @@ def cv2_blur(a, sigma):
     return cv2.GaussianBlur(a, (0, 0), sigma)
 
 
-def test_a_print_near_the_cure_threshold_is_told_apart():
-    from unscatter.imaging.batch import near_threshold_share
-
-    pred = np.zeros((128, 128), np.float32)
-    pred[30:100, 20:110] = 1.0
-    rng = np.random.default_rng(0)
-    dense = pred * 2.0 + rng.normal(0, 0.05, pred.shape)
-    textured = pred * (1.1 + 0.3 * rng.standard_normal(pred.shape)) + rng.normal(0, 0.05, pred.shape)
-    assert near_threshold_share(dense.astype(np.float32), pred, 1.0, 1.2) == 0.0
-    assert near_threshold_share(textured.astype(np.float32), pred, 1.0, 1.2) > 0.3
-    assert near_threshold_share(dense.astype(np.float32), np.zeros_like(pred), 1.0, 1.2) == 0.0
-
-
 def test_feature_sizes_are_known_as_well_as_the_batch_shows():
     from types import SimpleNamespace
 

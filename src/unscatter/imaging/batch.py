@@ -60,10 +60,8 @@ class Settings:
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
-    near_threshold_margin: float = 1.2  # a print's core below this many times the threshold is near the cure threshold ...
-    near_threshold_share: float = 0.15  # ... and a print whose pose rests on its size fails with more of its core there
-    faint_fraction: float = 0.9  # an image too faint to register whose brightest polymer reaches this share of the
-    # threshold is failed (whether it printed cannot be told at the image's resolution), not empty
+    faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
+    # threshold is failed (too little printed to register, or unresolved), not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -78,7 +76,6 @@ class PoseChoice:
     evidence: float = float("inf")  # z of the chosen pose over the nearest distinct rival
     rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
     tried: int = 0
-    by_size: bool = False  # its scale rests on the size of its features more than on where they lie
 
 
 # --------------------------------------------------------------------------- steps
@@ -282,20 +279,6 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
             if np.log(max(v, 1e-3)) > lim}
 
 
-def near_threshold_share(reg: np.ndarray, predicted: np.ndarray, thr: float, margin: float, erode: int = 3) -> float:
-    """The share of a print's core (its predicted print above half its maximum, ``erode``
-    px in from the edge) where the registered image, smoothed over about a pixel, is below
-    ``margin`` times the threshold: how much of the print cured only just. The edges of
-    such a print lie where its dose crosses the cure threshold, which moves by pixels with
-    a few percent of dose."""
-    top = float(np.max(predicted))
-    core = ndimage.binary_erosion(predicted >= 0.5 * top, iterations=erode)
-    if top <= 0 or not core.any():
-        return 0.0
-    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), 1.0)
-    return float(np.mean(reg_s[core] < margin * thr))
-
-
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
     """The print template of one print: the batch's numbers with the print's own."""
     return print_template(tmpl, B, x, fit.q)[0]
@@ -419,11 +402,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if n_above < s.min_print_px:
             peak = float(smooth[mid].max())
             if np.isfinite(thr) and peak >= max(s.faint_fraction * thr, 6 * k.noise):
-                # thin lines or dots that cured can image below the threshold (the microscope's
-                # blur spreads them): a peak this close to it is no evidence that nothing printed
-                faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold in "
-                              f"{n_above} px (fewer than {s.min_print_px}); whether it printed cannot be told at this "
-                              "image's resolution")
+                # polymer reaches the threshold, but in too few pixels to register (thin cured
+                # lines or dots that the microscope's blur spreads below it): not evidence that
+                # nothing printed
+                faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in "
+                              f"{n_above} px (fewer than {s.min_print_px}): too little to register, and not empty")
             else:
                 empty.add(mid)
     todo = [mid for mid in ids if mid not in empty and mid not in faint and mid not in odd and masks[mid].max() > 0]
@@ -506,7 +489,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     for mid, (f, T, sd) in zip(todo, pool.map(held, todo)):
         f.size_sd = size_spread(T, s.mode, sd)
         choices[mid].fit = f
-        choices[mid].by_size = spreads[mid][1] > s.max_pose_sd
     del spreads
 
     # 6. warp, threshold, QC, write
@@ -563,11 +545,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd})")
-        near = near_threshold_share(reg, tpl, thr, s.near_threshold_margin)
-        if ch.by_size and near > s.near_threshold_share:
-            reasons.append(f"pose not determined by the print: its scale rests on the size of a feature that cured near the "
-                           f"threshold ({100 * near:.0f} % of its core below {s.near_threshold_margin:g} times the threshold), "
-                           "a size no template predicts")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         row["solid_fraction"] = round(float(printed.mean()), 5)
