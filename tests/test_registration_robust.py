@@ -278,6 +278,18 @@ def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():
     assert size_spread(T_ripple, "similarity") > 5.0
 
 
+def test_thin_lines_image_below_the_level_they_cured_at():
+    from unscatter.imaging.batch import imaged_peak
+
+    block = np.zeros((512, 512), np.uint8)
+    block[100:300, 100:300] = 90
+    lines = np.zeros((512, 512), np.uint8)
+    lines[100:300:8, 100:300] = 255
+    assert imaged_peak(block, 2.0) == pytest.approx(1.0, abs=1e-3)
+    assert imaged_peak(lines, 2.0) < 0.5
+    assert imaged_peak(np.zeros((64, 64), np.uint8), 2.0) == 1.0
+
+
 def cv2_blur(a, sigma):
     import cv2
 

@@ -61,7 +61,7 @@ class Settings:
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
-    # threshold is failed (too little printed to register, or unresolved), not empty
+    # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -279,6 +279,15 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
             if np.log(max(v, 1e-3)) > lim}
 
 
+def imaged_peak(mask: np.ndarray, blur: float) -> float:
+    """The brightest a print of ``mask`` images at, as a share of its density, were every
+    exposed pixel to cure at the same density: the exposed area blurred by ``blur``
+    (design px), at its maximum. 1 for a print with a feature wider than a few blurs; less
+    for thin lines and small dots only."""
+    on = (mask > 0).astype(np.float32)
+    return float(cv2.GaussianBlur(on, (0, 0), max(blur, 0.3)).max()) if on.any() else 1.0
+
+
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
     """The print template of one print: the batch's numbers with the print's own."""
     return print_template(tmpl, B, x, fit.q)[0]
@@ -394,22 +403,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
-    empty, faint = set(), {}
+    low = {}  # too little above the threshold to register: empty or faint (decided with the template, step 4)
     for mid, k in corr.items():
         if mid in odd:
             continue
         n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * k.noise))) if np.isfinite(thr) else 0
         if n_above < s.min_print_px:
-            peak = float(smooth[mid].max())
-            if np.isfinite(thr) and peak >= max(s.faint_fraction * thr, 6 * k.noise):
-                # polymer reaches the threshold, but in too few pixels to register (thin cured
-                # lines or dots that the microscope's blur spreads below it): not evidence that
-                # nothing printed
-                faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in "
-                              f"{n_above} px (fewer than {s.min_print_px}): too little to register, and not empty")
-            else:
-                empty.add(mid)
-    todo = [mid for mid in ids if mid not in empty and mid not in faint and mid not in odd and masks[mid].max() > 0]
+            low[mid] = n_above
+    todo = [mid for mid in ids if mid not in low and mid not in odd and masks[mid].max() > 0]
     bar.total = 2 * len(ids) + 2 * len(todo)
     bar.refresh()
 
@@ -429,6 +430,20 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if fit_ids:
         x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
+    empty, faint = set(), {}
+    for mid, n_above in low.items():
+        peak = float(smooth[mid].max())
+        sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
+        reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)))
+        if np.isfinite(thr) and peak >= max(s.faint_fraction * reach * thr, 6 * corr[mid].noise):
+            # polymer this bright may have cured at the print level in features that the
+            # microscope's blur spreads below the threshold (thin lines, small dots): not
+            # evidence that nothing printed
+            faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
+                          f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level, would "
+                          f"image at {100 * reach:.0f} % of it: whether it printed cannot be told, and it is not empty")
+        else:
+            empty.add(mid)
 
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, scales[mid][0]), todo)))
