@@ -257,6 +257,45 @@ def test_a_print_that_is_one_feature_has_its_scale_from_its_size_only():
     assert size_spread(T_row, "similarity") < 0.4
 
 
+def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():
+    """A Siemens star is one feature: where its spoke tips lie against its spoke sides is
+    what the template predicts worst, so without a bound on its size its scale is free;
+    a faint ripple inside a block (a fine grating printed as one) fixes nothing either."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import size_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    star = patterns.siemens_star(np.random.default_rng(2), spokes=16)
+    T_star = tmpl(tmpl.padded(star), x)
+    assert size_spread(T_star, "similarity") > 5.0
+    assert size_spread(T_star, "similarity", 0.2) < 1.5
+    block = np.zeros((512, 512), np.float32)
+    block[150:400, 100:420] = 1.0
+    T_ripple = block * (1.0 + 0.03 * np.sin(2 * np.pi * np.arange(512)[:, None] / 4.0)) * np.linspace(1.0, 0.6, 512)[None, :]
+    T_ripple = np.pad(cv2_blur(T_ripple.astype(np.float32), 2.0), MARGIN)
+    assert size_spread(T_ripple, "similarity") > 5.0
+
+
+def test_thin_lines_image_below_the_level_they_cured_at():
+    from unscatter.imaging.batch import imaged_peak
+
+    block = np.zeros((512, 512), np.uint8)
+    block[100:300, 100:300] = 90
+    lines = np.zeros((512, 512), np.uint8)
+    lines[100:300:8, 100:300] = 255
+    assert imaged_peak(block, 2.0) == pytest.approx(1.0, abs=1e-3)
+    assert imaged_peak(lines, 2.0) < 0.5
+    assert imaged_peak(np.zeros((64, 64), np.uint8), 2.0) == 1.0
+
+
+def cv2_blur(a, sigma):
+    import cv2
+
+    return cv2.GaussianBlur(a, (0, 0), sigma)
+
+
 def test_feature_sizes_are_known_as_well_as_the_batch_shows():
     from types import SimpleNamespace
 

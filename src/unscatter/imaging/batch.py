@@ -60,6 +60,8 @@ class Settings:
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
+    faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
+    # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -248,14 +250,22 @@ def misfit_px(printed: np.ndarray, predicted: np.ndarray, thr: float) -> float:
     return float(np.count_nonzero((printed ^ solid) & sure) / max(edge / 2, 1.0))
 
 
+def determinacy_only(reason: str) -> bool:
+    """Whether a QC reason only says that the pose is ambiguous or not determined (the fit
+    itself converged, in range, well correlated)."""
+    return bool(reason) and all(r.startswith(("ambiguous", "pose not determined")) for r in reason.split("; "))
+
+
 def mismatched(rows: list[dict], s: Settings) -> dict:
     """Prints that disagree with their mask's predicted print far more than the batch's
     other prints do (a swapped or mislabelled image): misfit above ``mismatch_factor``
     times the batch median, ``mismatch_sigmas`` robust sigmas (1.4826 MAD, on the log
     misfit) above it but at most ``mismatch_factor_max`` times it, and ``min_misfit_px`` at
-    least. With fewer than five prints to compare, ``max_misfit_px`` alone."""
+    least. With fewer than five prints to compare, ``max_misfit_px`` alone. The batch's
+    prints to compare with are the ``ok`` ones and those that failed only because their
+    pose is ambiguous or not determined (``determinacy_only``): their fits are as good."""
     vals = {r["id"]: r["misfit"] for r in rows if isinstance(r.get("misfit"), float) and np.isfinite(r["misfit"])}
-    ref = [r["misfit"] for r in rows if r["status"] == "ok" and r["id"] in vals]
+    ref = [r["misfit"] for r in rows if (r["status"] == "ok" or determinacy_only(r["reason"])) and r["id"] in vals]
     if len(ref) < 5:
         return {k: f"misfit {v:.1f} px per edge px above {s.max_misfit_px}" for k, v in vals.items() if v > s.max_misfit_px}
     lv = np.log(np.maximum(np.array(ref), 1e-3))
@@ -267,6 +277,15 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
     lim = max(med + spread, np.log(s.min_misfit_px))
     return {k: f"misfit {v:.1f} px per edge px, the batch's median {np.exp(med):.2f}" for k, v in vals.items()
             if np.log(max(v, 1e-3)) > lim}
+
+
+def imaged_peak(mask: np.ndarray, blur: float) -> float:
+    """The brightest a print of ``mask`` images at, as a share of its density, were every
+    exposed pixel to cure at the same density: the exposed area blurred by ``blur``
+    (design px), at its maximum. 1 for a print with a feature wider than a few blurs; less
+    for thin lines and small dots only."""
+    on = (mask > 0).astype(np.float32)
+    return float(cv2.GaussianBlur(on, (0, 0), max(blur, 0.3)).max()) if on.any() else 1.0
 
 
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
@@ -384,14 +403,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
-    empty = set()
+    low = {}  # too little above the threshold to register: empty or faint (decided with the template, step 4)
     for mid, k in corr.items():
         if mid in odd:
             continue
         n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * k.noise))) if np.isfinite(thr) else 0
         if n_above < s.min_print_px:
-            empty.add(mid)
-    todo = [mid for mid in ids if mid not in empty and mid not in odd and masks[mid].max() > 0]
+            low[mid] = n_above
+    todo = [mid for mid in ids if mid not in low and mid not in odd and masks[mid].max() > 0]
     bar.total = 2 * len(ids) + 2 * len(todo)
     bar.refresh()
 
@@ -411,6 +430,20 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if fit_ids:
         x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
+    empty, faint = set(), {}
+    for mid, n_above in low.items():
+        peak = float(smooth[mid].max())
+        sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
+        reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)))
+        if np.isfinite(thr) and peak >= max(s.faint_fraction * reach * thr, 6 * corr[mid].noise):
+            # polymer this bright may have cured at the print level in features that the
+            # microscope's blur spreads below the threshold (thin lines, small dots): not
+            # evidence that nothing printed
+            faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
+                          f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level, would "
+                          f"image at {100 * reach:.0f} % of it: whether it printed cannot be told, and it is not empty")
+        else:
+            empty.add(mid)
 
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, scales[mid][0]), todo)))
@@ -481,6 +514,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
+            return row, None
+        if mid in faint:
+            row.update(status="failed", reason=faint[mid])
             return row, None
         if mid in empty:
             printed = np.zeros((design_px, design_px), bool)

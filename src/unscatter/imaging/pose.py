@@ -366,6 +366,7 @@ def edge_shifted(T: np.ndarray, edge, factor: int = 1):
 # EDGE_CORR_PX of edge.
 EDGE_SD = 0.4
 EDGE_CORR_PX = 16.0
+WEAK_EDGE = 0.25  # boundary pixels with less than this share of the median slope do not count
 
 
 def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
@@ -383,9 +384,17 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
     (a Schur complement per feature). Without a bound on the offsets, a single block, disc
     or grating printed as one block has a scale that only its size sets, and the spread
     is large however small the image noise; with one, it is about the offset over the
-    feature's radius times the field's. Several features fix the scale by where they lie,
-    a Siemens star by its spokes (their edges fix its size, the rim its scale, as well as
-    the template places the rim: a star's scale can be 1 % off with a small spread).
+    feature's radius times the field's. Several features fix the scale by where they lie.
+
+    Each feature may also be larger or smaller as a whole, about its own centre (an edge
+    displacement proportional to (x - x_k) . n, of the same standard deviation as e0 at
+    the feature's RMS radius): what the template predicts worst is how the parts of one
+    feature sit relative to each other (a Siemens star's spoke tips against its spoke
+    sides, a block's corners against its sides, the ends of the lines of a grating
+    printed as one block), so the scale of a print that is one feature rests on its size,
+    however its outline is shaped. Boundary pixels where T falls off at less than a
+    quarter of the boundary's median slope (a faint ripple crossing the level inside a
+    block) are left out: no image shows them.
     """
     n = T.shape[0]
     c = (n - 1) / 2
@@ -394,6 +403,8 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
     gy, gx = np.gradient(T.astype(np.float64))
     g = np.hypot(gx, gy)
     edge = (np.abs(T - lvl) <= 0.5 * g) & (g > 1e-9)
+    if edge.any():
+        edge &= g >= WEAK_EDGE * float(np.median(g[edge]))
     ys, xs = np.nonzero(edge)
     if len(xs) < 10:
         return float("inf")
@@ -413,16 +424,18 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
     Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
     v = EDGE_SD**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
     if offset_sd is None:
-        prior = np.zeros((5, 5))
+        prior = np.zeros((6, 6))
     else:
         sd = np.broadcast_to(np.asarray(offset_sd, float), (3,))
-        sd = np.concatenate([sd, sd[1:]])  # cos 4t, sin 4t as the directional part
+        sd = np.concatenate([sd, sd[1:], sd[:1]])  # cos 4t, sin 4t as the directional part; the feature's size as e0
         prior = np.diag(v / np.maximum(sd, 1e-6) ** 2)
     S = P.T @ P
     order = np.argsort(k, kind="stable")
     bounds = np.flatnonzero(np.diff(k[order])) + 1
     for idx in np.split(order, bounds):
-        Pk, Qk = P[idx], Q[idx]
+        dx, dy = X[idx] - X[idx].mean(), Y[idx] - Y[idx].mean()
+        size = (nx[idx] * dx + ny[idx] * dy) / max(float(np.sqrt(np.mean(dx * dx + dy * dy))), 1.0)
+        Pk, Qk = P[idx], np.column_stack([Q[idx], size])
         Apq = Pk.T @ Qk
         S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior, rcond=1e-8, hermitian=True) @ Apq.T
     S = 0.5 * (S + S.T)
