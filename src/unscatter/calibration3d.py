@@ -84,20 +84,28 @@ def _markers(d: np.ndarray) -> np.ndarray:
     clear of the test structures (which keep an eighth of the field free at each side). The mean projection of a block with a
     channel inside is one square whose size alone would set its scale; the marks fix the
     pose by their places."""
-    L, n, _ = d.shape
-    a, w = max(8, n // 6), max(3, n // 24)
-    out = d.copy()
-    out[:, 1:1 + a, 1:1 + w] = True  # an L in the top left corner
-    out[:, 1:1 + w, 1:1 + a] = True
-    out[:, 1:1 + w, n - 1 - a // 2:n - 1] = True  # a short bar in the top right
-    out[:, n - 1 - 2 * w:n - 1, n - 1 - 2 * w:n - 1] = True  # a square in the bottom right
+    n = d.shape[-1]
+    w = max(3, n // 24)
+    return corner_marks(d.copy(), w=w, arm=max(8, n // 6), square=2 * w, value=True)
+
+
+def corner_marks(out: np.ndarray, w: int, arm: int, square: int, value) -> np.ndarray:
+    """Draw registration marks into every layer of ``out`` (L, N, N), in place, one pixel
+    in from the edges: an L of arms ``arm`` long and ``w`` wide in the top left corner, a
+    bar ``arm // 2`` long in the top right, a square of side ``square`` in the bottom
+    right. Their places, not their sizes, fix a print's pose."""
+    N = out.shape[-1]
+    out[:, 1:1 + arm, 1:1 + w] = value  # the L
+    out[:, 1:1 + w, 1:1 + arm] = value
+    out[:, 1:1 + w, N - 1 - arm // 2:N - 1] = value  # the bar
+    out[:, N - 1 - square:N - 1, N - 1 - square:N - 1] = value  # the square
     return out
 
 
 def trial_masks3d(count: int, layers: int = 8, size: int = 128, seed: int = 0) -> dict:
     """``count`` 3-D trial prints, id ``<kind>_<index>`` -> (layers, size, size) uint8
     layer masks (255 = full dose), the kinds in turn, each from its own seeded stream,
-    each with registration marks in two corners (``_markers``)."""
+    each with registration marks in three corners (``_markers``)."""
     out = {}
     kinds = list(KINDS3D)
     for i in range(count):

@@ -233,12 +233,10 @@ def frame3d(layers: np.ndarray, margin: int) -> np.ndarray:
     N = n + 2 * margin
     out = np.zeros((L, N, N), layers.dtype)
     out[:, margin:margin + n, margin:margin + n] = layers
-    w, a, full = max(2, margin // 3), N // 5, np.iinfo(np.uint8).max if layers.dtype == np.uint8 else 1
-    out[:, 1:1 + w, 1:1 + a] = full  # an L in the top left corner
-    out[:, 1:1 + a, 1:1 + w] = full
-    out[:, 1:1 + w, N - 1 - a // 2:N - 1] = full  # a bar in the top right
-    out[:, N - 1 - w:N - 1, N - 1 - w:N - 1] = full  # a square in the bottom right
-    return out
+    from .calibration3d import corner_marks
+
+    w = max(2, margin // 3)
+    return corner_marks(out, w=w, arm=N // 5, square=w, value=np.iinfo(np.uint8).max if layers.dtype == np.uint8 else 1)
 
 
 def unframe3d(vox: np.ndarray, n: int, what) -> np.ndarray:
