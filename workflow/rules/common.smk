@@ -66,12 +66,17 @@ def _batch_folders():
         return {name: f"{RESULTS}/lab/{name}"}
     if not config["batches"]:
         raise WorkflowError("config: source is 'batches' but the list 'batches' is empty")
+    return _named_batches(config["batches"], "batches")
+
+
+def _named_batches(entries, what):
+    """Batch name -> folder of a config list of batches; two folders of one name are an error."""
     folders = {}
-    for entry in config["batches"]:
-        name, folder = _batch_folder(entry, "batches")
+    for entry in entries:
+        name, folder = _batch_folder(entry, what)
         if name in folders:
             raise WorkflowError(
-                f"config: batches {folders[name]} and {folder} have the same name {name!r}; "
+                f"config: {what} {folders[name]} and {folder} have the same name {name!r}; "
                 "outputs are named by the batch folder's name, so rename one folder"
             )
         folders[name] = str(folder)
@@ -117,13 +122,7 @@ def _layer_batches():
     if not config["layers"]["batches"]:
         raise WorkflowError("config: layers.run with source 'batches' needs layers.batches, the batches of the 3-D "
                             "trial prints (z-stacks; see README.md)")
-    trials = {}
-    for entry in config["layers"]["batches"]:
-        name, folder = _batch_folder(entry, "layers.batches")
-        if name in trials:
-            raise WorkflowError(f"config: layers.batches {trials[name]} and {folder} have the same name {name!r}; "
-                                "rename one folder")
-        trials[name] = str(folder)
+    trials = _named_batches(config["layers"]["batches"], "layers.batches")
     bench = {}
     if config["layers"]["benchmark_batch"]:
         name, folder = _batch_folder(config["layers"]["benchmark_batch"], "layers.benchmark_batch")
