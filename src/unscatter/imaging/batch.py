@@ -46,6 +46,9 @@ class Settings:
     candidates: int = 3  # distinct coarse poses refined per print
     min_evidence: float = 4.0  # z a pose needs over every distinct alternative (pose.evidence)
     distinct_px: float = 1.5  # poses further apart than this (RMS, design px) are distinct
+    symmetric_corr: float = 0.9  # a mask that correlates this well with itself rotated (blurred 2 px) is symmetric ...
+    symmetric_dip: float = 0.1  # ... when its correlation dips by this much at some smaller turn (stars 0.2 to 0.7,
+    # blocks, dots and checkerboards turned a little less than 0.05)
     mismatch_factor: float = 3.0  # a print whose misfit is this many times the batch median ...
     mismatch_sigmas: float = 4.0  # ... and this many robust sigmas above it does not match its mask
     mismatch_factor_max: float = 10.0  # (the limit is at most this many times the median)
@@ -60,6 +63,11 @@ class Settings:
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
+    fixed_scale_sd: float = 0.004  # a batch whose prints that fix their own scale agree on it within this (robust sd
+    # of the log scale) was imaged at one magnification: it holds the scale of prints that cannot fix theirs
+    scale_min_prints: int = 6  # ... with at least this many such prints
+    min_scale_sd: float = 0.001  # ... the scale then known within at least this (log)
+    scale_sigmas: float = 4.0  # ... and a print of such a batch this many of its sd off the batch's scale fails
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -76,6 +84,7 @@ class PoseChoice:
     evidence: float = float("inf")  # z of the chosen pose over the nearest distinct rival
     rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
     tried: int = 0
+    symmetry: float | None = None  # deg: the mask maps onto itself rotated by this, and the rival is the chosen pose so turned
 
 
 # --------------------------------------------------------------------------- steps
@@ -116,10 +125,12 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         f = refine(img, f[0], full, B_full, x, s.mode, iters=12, tol=0.01)
         return f, predicted_print(full, B_full, x, f)
 
+    def in_range(M):
+        p = pose_of(M, n, img.shape)
+        return rotation[0] - 1 <= p["rotation_deg"] <= rotation[1] + 1 and scale[0] / 1.01 <= p["scale"] <= scale[1] * 1.01
+
     def plausible(f):  # a pose outside the searched ranges is no rival: the prior excludes it
-        p = pose_of(f[0].M, n, img.shape)
-        return (rotation[0] - 1 <= p["rotation_deg"] <= rotation[1] + 1
-                and scale[0] / 1.01 <= p["scale"] <= scale[1] * 1.01 and f[0].gain > 0)
+        return in_range(f[0].M) and f[0].gain > 0
 
     def dedupe(fits):
         out = []
@@ -166,6 +177,18 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
             continue  # one valley with the best pose, not a second pose: the pose spread covers it
         if z < z_min:
             z_min, rival = z, f[0].M
+    # a mask that maps onto itself rotated (a Siemens star by a spoke pair) leaves the
+    # choice between the poses so turned to details of the print (how anisotropic scatter
+    # widens spokes of each direction) that its model may get wrong, however clearly the
+    # image prefers one: within the ranges, they are rivals whatever the evidence
+    # (its print then maps onto itself turned as well: only then is the mask looked at)
+    turns = any(abs(S[0, 1]) > 1e-6 for S in moves)
+    m = cv2.GaussianBlur(full.padded(mask).astype(np.float32), (0, 0), 2.0) if turns else None
+    for R in self_similar_moves(m, rotation_span=max(10.0, rotation[1] - rotation[0]), min_corr=s.symmetric_corr,
+                                shifts=False, dip=s.symmetric_dip) if turns else ():
+        alt = (h3(best[0].M) @ R)[:2]
+        if in_range(alt) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
+            return PoseChoice(best[0], best[0].converged, 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
     return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
 
 
@@ -192,6 +215,26 @@ def batch_range(poses: list[dict], s: Settings):
         out.append((float(v.min() - m), float(v.max() + m)))
     (rlo, rhi), (slo, shi) = out
     return (rlo, rhi), (float(np.exp(slo)), float(np.exp(shi)))
+
+
+def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
+    """The batch's scale when one magnification imaged it: (median log scale, its robust
+    spread, at least ``min_scale_sd``) over ``fits`` (prints whose features' places fix
+    their pose), or None when fewer than ``scale_min_prints`` of them or when their spread
+    is above ``fixed_scale_sd`` (a zoom set per image: each print's scale is its own).
+
+    The spread is that of single prints (the magnification's own variation and each
+    print's measurement error), not of the median: it is what a further print's scale may
+    be off by.
+    """
+    if len(fits) < s.scale_min_prints:
+        return None
+    ls = np.log([np.sqrt(abs(np.linalg.det(f.M[:, :2]))) for f in fits])
+    centre = float(np.median(ls))
+    spread = 1.4826 * float(np.median(np.abs(ls - centre)))
+    if spread > s.fixed_scale_sd:
+        return None
+    return centre, max(spread, s.min_scale_sd)
 
 
 def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
@@ -484,25 +527,40 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
+    one_scale = batch_scale(placed, s)
+    if one_scale is not None:
+        log.info("one magnification: scale %.4f +- %.2f %% (from %d prints whose pose their features' places fix)",
+                 np.exp(one_scale[0]), 100 * one_scale[1], len(placed))
+
+    def off_scale(M) -> bool:
+        return abs(np.log(np.sqrt(abs(np.linalg.det(M[:, :2])))) - one_scale[0]) > s.scale_sigmas * one_scale[1]
 
     def held(mid):
         """A print whose pose its features' sizes set: refitted with its edge offsets held
         to the batch's (erosion and anisotropic scattering are the batch's), their spread
         the batch's; not for a feature that joins parts of its mask (a grating printed as
         one block), whose size the scatter between the parts sets, px off the template's
-        in our labs: its size counts as unknown."""
+        in our labs: its size counts as unknown. In a batch of one magnification
+        (``batch_scale``) the scale of such a print is held to the batch's, and so is the
+        scale of a print whose pose is uncertain or whose scale is off the batch's (a
+        grating whose lines cure wider than the template predicts pulls its scale off);
+        a print that fixes its own pose keeps it, without the batch's spread."""
         ch, T = choices[mid], spreads[mid][0]
-        if merged_features(T, full.padded(masks[mid])):
-            return ch.fit, T, None
-        if spreads[mid][1] <= s.max_pose_sd or len(placed) < s.size_min_prints:
-            return ch.fit, T, edge_sd
+        merged = merged_features(T, full.padded(masks[mid]))
+        sd = None if merged else edge_sd
+        sized = spreads[mid][1] > s.max_pose_sd
+        edges = not merged and sized and len(placed) >= s.size_min_prints
+        scaled = one_scale is not None and (merged or sized or ch.fit.pose_sd > s.max_pose_sd or off_scale(ch.fit.M))
+        if not (edges or scaled):
+            return ch.fit, T, sd, None
         B = full.exposure(full.padded(masks[mid]), x)
-        f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior)
+        f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
+                   scale_prior=one_scale if scaled else None)
         f.converged = f.converged and ch.fit.converged
-        return f, predicted_print(full, B, x, f), edge_sd
+        return f, predicted_print(full, B, x, f), sd, one_scale[1] if scaled else None
 
-    for mid, (f, T, sd) in zip(todo, pool.map(held, todo)):
-        f.size_sd = size_spread(T, s.mode, sd)
+    for mid, (f, T, sd, ssd) in zip(todo, pool.map(held, todo)):
+        f.size_sd = size_spread(T, s.mode, sd, ssd)
         choices[mid].fit = f
     del spreads
 
@@ -549,7 +607,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"scale {pose['scale']:.3f} outside {lo:.3f}..{hi:.3f} ({scales[mid][1]})")
         if score < s.min_score:
             reasons.append(f"registration score {score:.2f} below {s.min_score}")
-        if ch.evidence < s.min_evidence:
+        if ch.symmetry is not None:
+            reasons.append(f"ambiguous: the mask maps onto itself rotated by {ch.symmetry:.1f} deg, and the pose so turned "
+                           f"({pose_distance(ch.rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px away) lies within "
+                           f"the batch's rotations: only details of the print that its model may not hold tell them apart")
+        elif ch.evidence < s.min_evidence:
             rv = pose_of(to_design(ch.rival, MARGIN), design_px, k.c.shape)
             reasons.append(f"ambiguous: a pose {pose_distance(ch.rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px away "
                            f"(rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
@@ -560,6 +622,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd})")
+        if one_scale is not None and abs(np.log(pose["scale"]) - one_scale[0]) > s.scale_sigmas * one_scale[1]:
+            reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
+                           f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
+                           f"the batch")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         row["solid_fraction"] = round(float(printed.mean()), 5)
@@ -588,7 +654,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
-                                                   flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p))
+                                                   flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
+                                                   one_magnification=None if one_scale is None else dict(
+                                                       scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed))))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
     return rows
 

@@ -234,8 +234,19 @@ def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
     return T, [dT, dTb, dTx, dTy, *dTe]
 
 
+def _log_scale_row(n: int, mode: str) -> np.ndarray:
+    """d log scale / d pose step, padded to ``n`` parameters: the first pose number is a
+    relative scale change (similarity); affine: the mean of the two diagonal ones."""
+    a = np.zeros(n)
+    if mode == "affine":
+        a[[0, 3]] = 0.5
+    else:
+        a[0] = 1.0
+    return a
+
+
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
-           tol: float = 0.01, spread: bool = True, prior: dict | None = None) -> Fit:
+           tol: float = 0.01, spread: bool = True, prior: dict | None = None, scale_prior: tuple | None = None) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors).
 
@@ -247,6 +258,12 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     solution (image noise in the gradient would inflate the normal matrix and shorten
     every step). ``spread=False`` skips the pose's standard deviation (``pose_sd`` nan).
     ``prior`` overrides nuisance priors (``_prior``).
+
+    ``scale_prior`` (mean log scale, its standard deviation) is what the batch knows of the
+    scale (image px per design px) when one magnification imaged it (``batch_scale``):
+    the scale is held at the mean, and the standard deviation counts in the pose's spread
+    (unlike the nuisance priors, it is measured on other prints), so a print whose scale
+    its features' sizes would set, or pull off, has its pose.
     """
     q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
@@ -298,8 +315,16 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         J /= norm[:, None].astype(np.float32)
         Jw = J * w.ravel()[None, :]
         H_data = (Jw @ J.T).astype(np.float64) / sigma**2
-        H = H_data.copy()
         rhs = -(Jw @ r.ravel()).astype(np.float64) / sigma**2
+        if scale_prior is not None:  # held at the batch's (a penalty far stiffer than the data's own precision,
+            # which trusts the template's sizes); the pose's spread is then the spread at that scale (the
+            # data's pull on the scale, which no longer balances, left out) and the batch's spread's
+            a = _log_scale_row(len(cols), mode) / norm
+            ls = float(np.log(np.sqrt(abs(np.linalg.det(Ms[:2, :2]))) / f))
+            stiff = 1e3 * float(np.trace(H_data)) / float(a @ a)
+            H_data += stiff * np.outer(a, a)
+            rhs -= stiff * a * (ls - scale_prior[0])
+        H = H_data.copy()
         kq = slice(npose + 2, None)
         H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
         rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
@@ -325,6 +350,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     sd = float("nan")
     if spread:
         sd = _pose_sd(H_data, norm, npose, J, w.ravel(), r.ravel(), sigma, shape, max(4, TILE_PX // f), mode, corners) * f
+        if scale_prior is not None:
+            a = _log_scale_row(npose, mode)
+            sd = float(np.hypot(sd, _field_rms(np.outer(a, a) * scale_prior[1] ** 2, mode, corners) * f))
     M_full = (Ms @ np.linalg.inv(S))[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
 
@@ -369,14 +397,15 @@ EDGE_CORR_PX = 16.0
 WEAK_EDGE = 0.25  # boundary pixels with less than this share of the median slope do not count
 
 
-def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
+def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None) -> float:
     """The pose's spread (px of ``T``'s grid, RMS over the field) when each feature of the
     predicted print ``T`` may be larger or smaller than predicted, more so across one
     direction than another: per feature an edge offset e0 + c2 cos 2t + s2 sin 2t +
     c4 cos 4t + s4 sin 4t (edge normal angle t; the first three as ``edge_shifted``, the
     4t terms let a block's corners round off apart from its sides) of standard deviations
     ``offset_sd`` (grid px; one number, or one each for e0, c2, s2, the 4t terms as c2 and
-    s2; None: unknown).
+    s2; None: unknown). ``scale_sd``: the standard deviation of the log scale that the batch
+    knows (one magnification, ``refine``'s ``scale_prior``), or None.
 
     A geometric model: the predicted print's boundary (T at half its maximum), each
     boundary pixel displaced along its normal by the pose and by its feature's offsets, a
@@ -439,6 +468,9 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None) -> float:
         Apq = Pk.T @ Qk
         S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior, rcond=1e-8, hermitian=True) @ Apq.T
     S = 0.5 * (S + S.T)
+    if scale_sd is not None:
+        a = _log_scale_row(len(S), mode)
+        S += v * np.outer(a, a) / scale_sd**2
     S[np.diag_indices_from(S)] += 1e-9 * np.trace(P.T @ P) / len(S)
     return min(_field_rms(np.linalg.inv(S) * v, mode, corners), 1e6)
 
@@ -521,7 +553,7 @@ def _pose_sd(H, norm, npose, J, w, r, sigma, shape, tile, mode, corners, max_lag
 
 
 def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float = 30.0, min_corr: float = 0.5,
-                       count: int = 4) -> list[np.ndarray]:
+                       count: int = 4, shifts: bool = True, dip: float = 0.0) -> list[np.ndarray]:
     """Moves S (3x3, grid -> grid) under which the predicted print T nearly maps onto itself.
 
     Shifts: local maxima of the normalised auto-correlation of T, high-passed (periods up
@@ -529,7 +561,10 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     Rotations: for each angle, the peak of the cross-correlation of T with T rotated
     about the grid centre (the shift at the peak turns it into a rotation about the
     print's own centre of symmetry, a star's hub). Only moves whose correlation is at
-    least ``min_corr`` are kept, the strongest ``count`` of each kind.
+    least ``min_corr`` are kept, the strongest ``count`` of each kind; ``shifts=False``:
+    rotations only; a rotation only when the correlation falls by ``dip`` or more between
+    no turn and it (a star's spokes over its gaps half-way; a block turned a little
+    correlates well at every angle on the way).
     """
     n = T.shape[0]
     # high-passed: a weak periodic ripple on a large block is a local maximum of the
@@ -547,7 +582,7 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     ys, xs = np.nonzero(peaks)
     cand = sorted(((float(win[y, x]), x - max_shift, y - max_shift) for y, x in zip(ys, xs)
                    if np.hypot(x - max_shift, y - max_shift) >= 2.5), reverse=True)
-    for v, dx, dy in cand[:count]:
+    for v, dx, dy in cand[:count] if shifts else ():
         moves.append(np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]]))
     # rotations, at quarter resolution (a spoke is wide near a star's rim)
     q = 4
@@ -570,7 +605,9 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     rot = []
     for i in range(1, len(prof) - 1):
         phi, v, dx, dy = prof[i]
-        if abs(phi) >= 3.0 and v >= min_corr and v >= vals[i - 1] and v >= vals[i + 1]:
+        i0 = len(prof) // 2  # no turn
+        between = vals[min(i, i0) : max(i, i0) + 1]
+        if abs(phi) >= 3.0 and v >= min_corr and v >= vals[i - 1] and v >= vals[i + 1] and v - between.min() >= dip:
             rot.append((v, phi, dx, dy))
     c = (n - 1) / 2
     for v, phi, dx, dy in sorted(rot, reverse=True)[:count]:

@@ -75,10 +75,12 @@ def field_extent_px(scale: float, rotation_deg: float, design_px: int = DESIGN_P
 def _microscope(rng: np.random.Generator) -> dict:
     rot = _u(rng, "rotation_deg")
     lo_s, hi_s = RANGES["scale"]
-    if rng.random() < 0.25:  # a lab whose magnification varies over the whole range
+    kind = rng.random()
+    if kind < 0.25:  # a lab whose magnification varies over the whole range
         scale = [lo_s, hi_s]
-    else:  # a fixed objective: a narrow range somewhere in the whole
-        c, hw = _log_u(rng, "scale"), float(rng.uniform(0.02, 0.15))
+    else:  # a zoom set by hand for each image (a narrow range somewhere in the whole), or one
+        # objective, whose scale only refocusing changes (0.2 % at most)
+        c, hw = _log_u(rng, "scale"), float(rng.uniform(0.02, 0.15) if kind < 0.6 else rng.uniform(0.0, 0.002))
         scale = [max(lo_s, c * np.exp(-hw)), min(hi_s, c * np.exp(hw))]
     # the field of view fits the rotated field at the largest scale (draw_pose then keeps
     # the design in view for any shift it draws)
@@ -168,7 +170,7 @@ def describe_lab(over: dict) -> str:
              f"offset {m['offset_adu']:g}{'' if m['declare_offset'] else ' (undeclared)'}",
              f"photons {m['photons']:.0f}", f"bg {m['background']:.3g}", f"read {m['read_noise_e']:.3g} e",
              f"blur {m['blur_px'][0]:.2g}-{m['blur_px'][1]:.2g}", f"vig {m['vignetting'][1]:.2f}",
-             f"rot {m['rotation_deg']:.1f}", f"scale {m['scale'][0]:.2f}-{m['scale'][1]:.2f}",
+             f"rot {m['rotation_deg']:.1f}", f"scale {m['scale'][0]:.3f}-{m['scale'][1]:.3f}",
              f"jitter {m['lamp_jitter']:.2f}"]
     if m.get("haze"):
         parts.append(f"haze {m['haze']['fraction']:.2f}/{m['haze']['sigma_px']:.0f}px")
