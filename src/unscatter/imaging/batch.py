@@ -16,7 +16,7 @@ from ..settings import REGISTRATION
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_range
-from .pose import (Fit, coarse_candidates, print_template, evidence, h3, pose_distance, pose_of, project_similarity, refine,
+from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, refine_ecc, self_similar_moves, size_spread, to_design)
 from .template import PrintTemplate, blurred_mask, fit_template, ncc
 
@@ -182,10 +182,12 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     # widens spokes of each direction) that its model may get wrong, however clearly the
     # image prefers one: within the ranges, they are rivals whatever the evidence
     # (its print then maps onto itself turned as well: only then is the mask looked at)
-    turns = any(abs(S[0, 1]) > 1e-6 for S in moves)
-    m = cv2.GaussianBlur(full.padded(mask).astype(np.float32), (0, 0), 2.0) if turns else None
-    for R in self_similar_moves(m, rotation_span=max(10.0, rotation[1] - rotation[0]), min_corr=s.symmetric_corr,
-                                shifts=False, dip=s.symmetric_dip) if turns else ():
+    symmetries = []
+    if any(abs(S[0, 1]) > 1e-6 for S in moves):
+        m = cv2.GaussianBlur(full.padded(mask).astype(np.float32), (0, 0), 2.0)
+        symmetries = self_similar_moves(m, rotation_span=max(10.0, rotation[1] - rotation[0]), min_corr=s.symmetric_corr,
+                                        shifts=False, dip=s.symmetric_dip)
+    for R in symmetries:
         alt = (h3(best[0].M) @ R)[:2]
         if in_range(alt) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], best[0].converged, 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
@@ -229,7 +231,7 @@ def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     """
     if len(fits) < s.scale_min_prints:
         return None
-    ls = np.log([np.sqrt(abs(np.linalg.det(f.M[:, :2]))) for f in fits])
+    ls = np.array([log_scale(f.M) for f in fits])
     centre = float(np.median(ls))
     spread = 1.4826 * float(np.median(np.abs(ls - centre)))
     if spread > s.fixed_scale_sd:
@@ -533,7 +535,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                  np.exp(one_scale[0]), 100 * one_scale[1], len(placed))
 
     def off_scale(M) -> bool:
-        return abs(np.log(np.sqrt(abs(np.linalg.det(M[:, :2])))) - one_scale[0]) > s.scale_sigmas * one_scale[1]
+        return one_scale is not None and abs(log_scale(M) - one_scale[0]) > s.scale_sigmas * one_scale[1]
 
     def held(mid):
         """A print whose pose its features' sizes set: refitted with its edge offsets held
@@ -622,7 +624,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd})")
-        if one_scale is not None and abs(np.log(pose["scale"]) - one_scale[0]) > s.scale_sigmas * one_scale[1]:
+        if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
                            f"the batch")

@@ -234,6 +234,11 @@ def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
     return T, [dT, dTb, dTx, dTy, *dTe]
 
 
+def log_scale(M: np.ndarray) -> float:
+    """Log of a pose's scale (image px per grid px): half the log of its linear part's |det|."""
+    return float(0.5 * np.log(abs(np.linalg.det(np.asarray(M)[:2, :2]))))
+
+
 def _log_scale_row(n: int, mode: str) -> np.ndarray:
     """d log scale / d pose step, padded to ``n`` parameters: the first pose number is a
     relative scale change (similarity); affine: the mean of the two diagonal ones."""
@@ -320,7 +325,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             # which trusts the template's sizes); the pose's spread is then the spread at that scale (the
             # data's pull on the scale, which no longer balances, left out) and the batch's spread's
             a = _log_scale_row(len(cols), mode) / norm
-            ls = float(np.log(np.sqrt(abs(np.linalg.det(Ms[:2, :2]))) / f))
+            ls = log_scale(Ms) - float(np.log(f))
             stiff = 1e3 * float(np.trace(H_data)) / float(a @ a)
             H_data += stiff * np.outer(a, a)
             rhs -= stiff * a * (ls - scale_prior[0])
@@ -567,23 +572,23 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     correlates well at every angle on the way).
     """
     n = T.shape[0]
-    # high-passed: a weak periodic ripple on a large block is a local maximum of the
-    # ripple's auto-correlation, not of the block's (which falls off smoothly)
-    Tf = T.astype(np.float32)
-    z = _zn((Tf - cv2.GaussianBlur(Tf, (0, 0), 12.0)).astype(np.float64))
-    N = cv2.getOptimalDFTSize(n + max_shift)
-    F = np.fft.rfft2(z, s=(N, N))
     moves = []
-    ac = np.fft.irfft2(F * np.conj(F), s=(N, N))
-    ac = np.fft.fftshift(ac)
-    o = N // 2
-    win = ac[o - max_shift : o + max_shift + 1, o - max_shift : o + max_shift + 1]
-    peaks = (win == ndimage.maximum_filter(win, size=5)) & (win >= min_corr)
-    ys, xs = np.nonzero(peaks)
-    cand = sorted(((float(win[y, x]), x - max_shift, y - max_shift) for y, x in zip(ys, xs)
-                   if np.hypot(x - max_shift, y - max_shift) >= 2.5), reverse=True)
-    for v, dx, dy in cand[:count] if shifts else ():
-        moves.append(np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]]))
+    if shifts:
+        # high-passed: a weak periodic ripple on a large block is a local maximum of the
+        # ripple's auto-correlation, not of the block's (which falls off smoothly)
+        Tf = T.astype(np.float32)
+        z = _zn((Tf - cv2.GaussianBlur(Tf, (0, 0), 12.0)).astype(np.float64))
+        N = cv2.getOptimalDFTSize(n + max_shift)
+        F = np.fft.rfft2(z, s=(N, N))
+        ac = np.fft.fftshift(np.fft.irfft2(F * np.conj(F), s=(N, N)))
+        o = N // 2
+        win = ac[o - max_shift : o + max_shift + 1, o - max_shift : o + max_shift + 1]
+        peaks = (win == ndimage.maximum_filter(win, size=5)) & (win >= min_corr)
+        ys, xs = np.nonzero(peaks)
+        cand = sorted(((float(win[y, x]), x - max_shift, y - max_shift) for y, x in zip(ys, xs)
+                       if np.hypot(x - max_shift, y - max_shift) >= 2.5), reverse=True)
+        for v, dx, dy in cand[:count]:
+            moves.append(np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]]))
     # rotations, at quarter resolution (a spoke is wide near a star's rim)
     q = 4
     Tq = cv2.resize(T, None, fx=1 / q, fy=1 / q, interpolation=cv2.INTER_AREA)
