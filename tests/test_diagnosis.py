@@ -48,6 +48,9 @@ LAB_EFFECTS = {
     "illumination_field": {"printer": {"illumination": {"quartic": -0.15}}},
     "edge_offset": {"printer": {"edge_offset_um": 6.0}},
 }
+# outside the library: a lamp hot spot, which the low-order illumination terms only partly describe
+OUTSIDE_EFFECTS = {"hotspot": {"printer": {"illumination": {"hotspot": {"amplitude": 0.3, "x0": 0.35, "y0": -0.3,
+                                                                        "width": 0.2}}}}}
 # the same effects as model parameters (the lab's truth in the model's units)
 TRUE_EFFECT_PARAMS = {
     "heavy_tail": dict(tail_fraction=0.25, tail_length_px=60.0 / PX),
@@ -69,7 +72,7 @@ def _merge(a: dict, b: dict) -> dict:
 def lab_config(effect: str | None, noise: bool = True) -> dict:
     from unscatter.lab import load_config
 
-    over = _merge(EQ1_LAB, LAB_EFFECTS[effect]) if effect else EQ1_LAB
+    over = _merge(EQ1_LAB, {**LAB_EFFECTS, **OUTSIDE_EFFECTS}[effect]) if effect else EQ1_LAB
     if not noise:
         over = _merge(over, {"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}})
     return load_config(overrides=over)
@@ -263,6 +266,41 @@ def test_structure_test_flags_a_common_trend_but_not_noise():
     assert t0["p_value"] > 0.01 and t0["excess"] < 0.15
 
 
+def _quarters_geometry(B: int, n: int):
+    """One diagnostic whose four bins are the quadrants of an n x n field."""
+    q = np.zeros((n, n), np.int16)
+    q[:, n // 2:] += 1
+    q[n // 2:, :] += 2
+    return SimpleNamespace(names=["quadrant"], labels={"quadrant": list("abcd")}, bins=[{"quadrant": q}] * B)
+
+
+def test_predictive_gain_needs_a_correction_that_carries_to_new_prints():
+    from scipy import ndimage
+
+    from unscatter.diagnosis import predictive_gain
+
+    rng = np.random.default_rng(3)
+    B, n = 16, 64
+    geo = _quarters_geometry(B, n)
+    # each fold's fit: the true margin, its threshold a little off (fit noise)
+    margin = np.stack([ndimage.gaussian_filter(rng.standard_normal((n, n)), 4) for _ in range(B)])
+    margin = 0.3 * margin / margin.std()
+    folds = [np.arange(i, B, 4) for i in range(4)]
+    margins = np.stack([margin + rng.normal(0, 0.01) for _ in folds]).astype(np.float16)
+    sims = np.zeros((B, n, n), bool)
+    for f, idx in enumerate(folds):
+        sims[idx] = margins[f, idx] >= 0
+    quad = geo.bins[0]["quadrant"]
+    # every print prints more in quadrant a than the model says: a missing effect
+    common = np.stack([m + 0.1 * (quad == 0) + 0.02 * rng.standard_normal((n, n)) >= 0 for m in margin])
+    # each print's quadrants off by its own amount, of random sign: noise no model predicts
+    own = np.stack([m + rng.normal(0, 0.1, 4)[quad] >= 0 for m in margin])
+    g_common = predictive_gain(geo, common, sims, margins, folds)["quadrant"]
+    g_own = predictive_gain(geo, own, sims, margins, folds)["quadrant"]
+    assert g_common > 0.2, g_common
+    assert g_own < 0.02, g_own
+
+
 # ------------------------------------------------------------------------- the loop
 
 
@@ -313,6 +351,19 @@ def test_eq1_like_prints_get_no_effect(case, tmp_path):
     assert r["after"] == r["before"]
     assert not r["unexplained_residual"]
     assert load_params(tmp_path / "d" / "model.yaml").model == "eq1"
+
+
+@pytest.mark.slow
+def test_an_effect_outside_the_library_is_flagged_unexplained(case, tmp_path):
+    """A hot spot: the library's illumination field takes part of it; what is left trends
+    with the position in the field in every print, and a per-cell correction fitted on
+    training prints predicts the held-out ones."""
+    c = case("hotspot")
+    r = diagnose([c.prints], c.params, tmp_path / "d", quick=True, seed=0, candidates=["illumination_field"], **QUIET)
+    assert r["unexplained_residual"]
+    flagged = {t["diagnostic"]: t for t in r["structure_after"] if t["significant"]}
+    assert "position" in flagged, r["structure_after"]
+    assert flagged["position"]["predictive_gain"] >= 0.03
 
 
 # the effect and a decoy whose signature differs; the full list runs on the heavy tail above
@@ -399,8 +450,8 @@ def test_candidate_fit_reaches_the_true_parameters_error():
     # the warm start the diagnosis gives: Eq. 1's fit (here: Eq. 1 with the truth's field
     # and a wider kernel, lower threshold), the tail at its neutral 0
     start = p.values | {k: truth[k] for k in ("c1", "c2", "c3", "c4")} | dict(sigma_px=3.4, T=0.36)
-    fit = _Context(p, data, CPU, s).fit(start, None, 0, s, set(default_params("eq1").free), "test")
-    ctx = _Context(p, held_data, CPU, s)
+    fit = _Context(p, data, CPU, s, {}).fit(start, None, 0, s, set(default_params("eq1").free), "test")
+    ctx = _Context(p, held_data, CPU, s, {})
     err = lambda v: float(np.mean(ctx.predict(v, np.arange(len(held))) != held_data.prints))  # noqa: E731
     assert err(start) > 1.3 * err(truth)  # the tail matters at this strength
     assert err(fit) < 1.05 * err(truth), (err(fit), err(truth), fit)

@@ -26,8 +26,13 @@ minus simulated print) carries what the model lacks. The loop here:
    systematic residual: the share of the residual that the per-bin mean would remove
    (sum over bins of |sum of signed residual| / pixels), minus its median under the
    null of random sign flips of whole prints, relative to the mismatch rate there. A
-   diagnostic shows structure when the sign-flip p-value is below ``alpha`` and this
-   excess is at least ``structure_min``. Structure left after selection sets
+   diagnostic shows structure when the sign-flip p-value is below ``alpha``, this
+   excess is at least ``structure_min``, and the structure predicts: a per-bin
+   correction of the cure margin, fitted with each fold's model on its training prints,
+   removes at least ``structure_gain`` of the held-out error on the fold's held-out
+   prints (``predictive_gain``). Structure that does not carry to new prints is the
+   prints' own noise (thin near-threshold features that cure or not by the cells
+   around them), which no printer model predicts. Structure left after selection sets
    ``unexplained_residual: true`` and names the diagnostics.
 
 Held-out error is the calibration's objective on held-out prints (``objective``,
@@ -109,7 +114,8 @@ DEFAULTS = dict(
     min_improvement=0.03,  # accepted only if the mean held-out error drops by at least this share
     max_rounds=5,
     alpha=0.01,  # structure test: sign-flip p-value below this ...
-    structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch
+    structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch ...
+    structure_gain=0.03,  # ... and a per-bin correction fitted on other folds removes this share of the held-out error
     permutations=999,
     radii_um=(10.0, 30.0, 100.0, 300.0),
     band_um=30.0,  # binned diagnostics (but the signed distance) use pixels this close to a mask edge
@@ -146,13 +152,17 @@ ERROR = ERRORS["mismatch"]
 class _Context:
     """One model over all prints: the fast evaluator and its objectives per sampling."""
 
-    def __init__(self, params: Params, data, device, s):
+    def __init__(self, params: Params, data, device, s, shared: dict):
+        """``shared``: caches kept over one diagnosis: the masks' spectra (``FixedMasks``)
+        and the training objective of each fold's start (``_start_key``)."""
         self.params = params
         self.model = get_model(params.model)
         self.device = device
         self.data = data
+        self.shared = shared
         support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
-        self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support)
+        self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support,
+                              cache=shared.setdefault("spectra", {}))
         self._objs: dict[int, Objective] = {}
         self.objective, self.area_floor = s["objective"], s["area_floor"]
         self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
@@ -202,8 +212,11 @@ class _Context:
         init = [space.encode(centre)] + ([space.encode(start)] if centre is not start else [])
         fit = fit_params(space, self.model, obj, f_ga, f_ref, 1, self.device, seed, settings, s["population"],
                          s["generations"], init=init, desc=desc, history=False)
-        start_obj = float(obj(1).hard(self.model.theta(start, self.device))[0])
-        return fit.values if fit.objective <= start_obj else dict(start)
+        starts = self.shared.setdefault("start", {})
+        key = _start_key(idx, start)
+        if key not in starts:
+            starts[key] = float(obj(1).hard(self.model.theta(start, self.device))[0])
+        return fit.values if fit.objective <= starts[key] else dict(start)
 
     def _multistart(self, full: Space, objective: Objective, start: dict, new: list, seed: int, s: dict) -> dict:
         """The best of ``start`` and ``s['starts']`` refined starts spread over the bounds
@@ -225,6 +238,30 @@ class _Context:
     def predict(self, values: dict, idx) -> np.ndarray:
         with torch.no_grad():
             return self.sim.subset(idx).prints(self.model.theta(values, self.device))[0].cpu().numpy()
+
+    def margins(self, fold_values: list) -> np.ndarray:
+        """(k, B, H, W) float16: every print's relative cure margin dose / T - 1 (printed
+        where >= 0) under each fold's fit."""
+        out = np.zeros((len(fold_values), *self.data.prints.shape), np.float16)
+        with torch.no_grad():
+            for f, v in enumerate(fold_values):
+                theta = self.model.theta(v, self.device)
+                for b0 in range(0, len(self.data), 8):
+                    sl = slice(b0, b0 + 8)
+                    out[f, sl] = (self.sim.dose(theta, sl)[0] / theta["T"][0] - 1).cpu().numpy()
+        return out
+
+
+_NEUTRAL = {sp.name: sp.default for e in EFFECTS.values() for sp in e.params}
+
+
+def _start_key(idx, start: dict) -> tuple:
+    """The prints and the parameters a fit starts from, effect parameters at their neutral
+    default left out: a candidate's start (the current model's fold fit plus the effect
+    at neutral) simulates the same prints as the current model's, so one training
+    objective serves the control and every candidate of a round."""
+    prints = None if idx is None else tuple(int(i) for i in np.asarray(idx))
+    return prints, tuple(sorted((k, float(v)) for k, v in start.items() if not (k in _NEUTRAL and float(v) == _NEUTRAL[k])))
 
 
 @dataclass
@@ -433,6 +470,65 @@ def structure_test(S: np.ndarray, A: np.ndarray, N: np.ndarray, permutations: in
                 mismatch=float(mism))
 
 
+OFFSETS = np.round(np.linspace(-0.4, 0.4, 81), 3)  # cure-margin corrections tried per bin (relative dose, 0 included)
+
+
+def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
+                    offsets: np.ndarray = OFFSETS) -> dict:
+    """name -> the share of the held-out error that a correction along the diagnostic
+    removes from prints it was not fitted on.
+
+    The correction shifts the relative cure margin (dose / T - 1) of every pixel in bin b
+    by one offset d_b (the pixel prints where margin + d_b >= 0): the most flexible
+    correction a binned diagnostic supports. For each fold, the offsets are fitted with
+    the fold's model on its own training prints (fewest mismatched pixels in the bin,
+    weighted per print as the objective is; the smallest |d_b| among ties) and scored on
+    the fold's held-out prints: the correction is part of the fold's fit. (Fitted on the
+    other folds' held-out residuals instead, it would learn the opposite of the fold's
+    own fit error, which k-fold residuals share with a minus sign.) The gain is the
+    mismatch removed, summed over folds and bins, over the whole held-out error (every
+    pixel of every print, weighted). Structure that a correction cannot carry to new
+    prints (gain near 0 or below) is in the prints' own noise, which no model of the
+    printer predicts; a missing effect moves edges alike in every print and gives a gain.
+
+    ``margins``: (k, B, H, W) every print's margin under each fold's fit
+    (``_Context.margins``); ``sims``: the held-out prints (each from its fold's fit).
+    """
+    B = len(prints)
+    w = np.ones(B) if weights is None else np.asarray(weights, float)
+    t = np.sort(-np.asarray(offsets, float))  # thresholds on the margin: printed at offset d where margin >= -d
+    K = len(t)
+    k0 = int(np.argmin(np.abs(t)))
+    F = len(folds)
+    test = np.zeros((F, B), int)
+    for f, idx in enumerate(folds):
+        test[f, np.asarray(idx)] = 1
+    # (role: 0 train / 1 held out, measured 0 / 1, fold, bin, threshold index j: printed at t_k iff k < j)
+    hist = {n: np.zeros((2, 2, F, len(geo.labels[n]), K + 1)) for n in geo.names}
+    ok = {n: [g[n].ravel() >= 0 for g in geo.bins] for n in geo.names}
+    total = float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(B)))
+    for f in range(F):
+        for i in range(B):
+            p = prints[i].ravel().astype(np.int64)
+            j = np.searchsorted(t, margins[f, i].ravel().astype(np.float32), side="right")
+            for n in geo.names:
+                nb = len(geo.labels[n])
+                sel = ok[n][i]
+                code = ((test[f, i] * 2 + p[sel]) * nb + geo.bins[i][n].ravel()[sel]) * (K + 1) + j[sel]
+                hist[n][:, :, f] += w[i] * np.bincount(code, minlength=4 * nb * (K + 1)).reshape(2, 2, nb, K + 1)
+    out = {}
+    tie = 1e-9 * np.abs(t)
+    for n, h in hist.items():
+        # mismatch at each threshold: printed where not measured + measured where not printed
+        mis = h[:, 0].sum(-1, keepdims=True) - np.cumsum(h[:, 0], -1) + np.cumsum(h[:, 1], -1)
+        mis = mis[..., :K]  # (role, F, nb, K)
+        best = np.argmin(mis[0] + tie, axis=-1)  # (F, nb): on the fold's training prints
+        held = mis[1]
+        removed = held[..., k0] - np.take_along_axis(held, best[..., None], -1)[..., 0]
+        out[n] = float(removed.sum() / total) if total > 0 else 0.0
+    return out
+
+
 def spectrum(geo: Geometry, prints: np.ndarray, sims: np.ndarray) -> dict:
     nb = len(geo.freq)
     am, asim = np.zeros(nb), np.zeros(nb)
@@ -443,10 +539,14 @@ def spectrum(geo: Geometry, prints: np.ndarray, sims: np.ndarray) -> dict:
     return dict(mtf_measured=am / mk, mtf_simulated=asim / mk, ratio=am / np.maximum(asim, 1e-12))
 
 
-def diagnose_residuals(geo: Geometry, prints: np.ndarray, sims: np.ndarray, s: dict, seed: int, model: str, stage: str):
-    """Rows for diagnostics.tsv and structure.tsv of one set of held-out predictions."""
+def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: np.ndarray, folds: list, weights, s: dict,
+                       seed: int, stage: str):
+    """Rows for diagnostics.tsv and structure.tsv of one set of held-out predictions
+    (``margins``: ``_Context.margins`` of its fold fits)."""
     rows, tests = [], []
+    sims, model = ho.sims, ho.model
     sums = residual_sums(geo, prints, sims)
+    gains = predictive_gain(geo, prints, sims, margins, folds, weights)
     for name in geo.names:
         S, A, N = sums[name]
         n = N.sum(0)
@@ -457,7 +557,9 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, sims: np.ndarray, s: d
                              prints=int(np.count_nonzero(N[:, j])), residual_mean=float(S[:, j].sum() / n[j]),
                              mismatch=float(A[:, j].sum() / n[j])))
         t = structure_test(S, A, N, s["permutations"], seed)
-        t["significant"] = bool(t["p_value"] < s["alpha"] and t["excess"] >= s["structure_min"])
+        t["predictive_gain"] = gains[name]
+        t["significant"] = bool(t["p_value"] < s["alpha"] and t["excess"] >= s["structure_min"]
+                                and t["predictive_gain"] >= s["structure_gain"])
         tests.append(dict(stage=stage, model=model, diagnostic=name, **t))
     sp = spectrum(geo, prints, sims)
     for j, f in enumerate(geo.freq):
@@ -640,7 +742,8 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     bar = tqdm(total=total, desc="diagnosis fits", disable=not progress, unit="fit")
 
     # -- round 0: the base model's held-out residuals -----------------------------------
-    ctx = _Context(base, data, device, s)
+    shared: dict = {}
+    ctx = _Context(base, data, device, s, shared)
     known = set(base.free)
     cur = _heldout(ctx, [dict(base.values)] * len(folds), folds, s, known, seed, "base", bar)
     cur.values = dict(base.values)
@@ -656,7 +759,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
             break
         # the control: the current model refitted from its fold fits with the candidates'
         # budget, so that an improvement is the effect's and not the extra optimisation's
-        ctx = _Context(cur_params, data, device, s)
+        ctx = _Context(cur_params, data, device, s, shared)
         ctl = _heldout(ctx, cur.fold_values, folds, s, set(cur_params.free), seed + 1000 * rnd, "control", bar)
         del ctx
         if ctl.error.mean() <= cur.error.mean():
@@ -673,7 +776,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
             t0 = time.perf_counter()
             p = extend_params(cur_params, [c])
             p = p.with_values(**{k: v for k, v in cur.values.items() if k in p.values})
-            ctx = _Context(p, data, device, s)
+            ctx = _Context(p, data, device, s, shared)
             starts = []
             for v in cur.fold_values:
                 st = dict(p.values)
@@ -704,7 +807,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                 r["selected"] = True
         p, ho, _, _ = results[best]
         # the full-data fit of the extended model, warm-started from the current one
-        ctx = _Context(p, data, device, s)
+        ctx = _Context(p, data, device, s, shared)
         start = dict(p.values)
         ho.values = ctx.fit(start, None, seed + 7000 + rnd, s, set(cur_params.free), f"full +{best}")
         del ctx
@@ -717,11 +820,15 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
 
     # -- diagnostics before and after ----------------------------------------------------
     geo = geometry(data.masks, px, s)
-    rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho.sims, s, seed, base_ho.model, "before")
+    weights = print_weights(data.prints, s["objective"], s["area_floor"])
+    margins = _Context(base, data, device, s, shared).margins(base_ho.fold_values)
+    rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho, margins, folds, weights, s, seed, "before")
     if cur is base_ho:
         rows_a, tests_a, sums_a, sp_a = [], [dict(t, stage="after") for t in tests_b], sums_b, sp_b
     else:
-        rows_a, tests_a, sums_a, sp_a = diagnose_residuals(geo, data.prints, cur.sims, s, seed, cur.model, "after")
+        margins = _Context(cur_params, data, device, s, shared).margins(cur.fold_values)
+        rows_a, tests_a, sums_a, sp_a = diagnose_residuals(geo, data.prints, cur, margins, folds, weights, s, seed, "after")
+    del margins
     unexplained = [t["diagnostic"] for t in tests_a if t["significant"]]
 
     before_m = summary_metrics(data.prints, base_ho.sims, px)
@@ -748,8 +855,9 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
             improvement=stats_final, seconds=round(elapsed, 1),
             acceptance=(f"paired bootstrap over prints ({s['bootstrap']} replicates): 2.5 % quantile of the mean "
                         f"per-print improvement > 0 and mean improvement >= {s['min_improvement']:.0%} of the current error"),
-            structure_test=(f"sign-flip p < {s['alpha']} and excess systematic residual >= {s['structure_min']:.0%} of the "
-                            "mismatch rate (see unscatter.diagnosis)"),
+            structure_test=(f"sign-flip p < {s['alpha']}, excess systematic residual >= {s['structure_min']:.0%} of the "
+                            f"mismatch rate, and a per-bin margin correction fitted on training prints removes >= "
+                            f"{s['structure_gain']:.0%} of the held-out error (see unscatter.diagnosis)"),
             settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("device",)},
         ),
     )
@@ -767,7 +875,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         rows_a = [dict(r, stage="after") for r in rows_b]
     write_tsv(out_dir / "diagnostics.tsv", rows_b + rows_a, diag_cols)
     write_tsv(out_dir / "structure.tsv", tests_b + tests_a, ["stage", "model", "diagnostic", "statistic", "null_median",
-                                                           "p_value", "excess", "mismatch", "significant"])
+                                                           "p_value", "excess", "mismatch", "predictive_gain", "significant"])
     if s["figures"]:
         stages = [(f"before ({base_ho.model})", sums_b, sp_b)]
         if cur is not base_ho:
@@ -814,14 +922,17 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
                      f"{r['ci_lo']:.1e} .. {r['ci_hi']:.1e} | {'yes' if r['accepted'] else 'no'} | {'**yes**' if r['selected'] else ''} |")
     lines += ["", f"Accepted: 95 % bootstrap interval above 0 and at least {s['min_improvement']:.0%} lower held-out error.", "",
               "## Structure left in the residual", "",
-              "| diagnostic | excess before | p before | excess after | p after |", "|---|---|---|---|---|"]
+              "| diagnostic | excess before | p before | gain before | excess after | p after | gain after |",
+              "|---|---|---|---|---|---|---|"]
     after = {t["diagnostic"]: t for t in tests_a}
     for t in tests_b:
         a = after[t["diagnostic"]]
         mark = lambda x: " **sig.**" if x["significant"] else ""  # noqa: E731
-        lines.append(f"| {t['diagnostic']} | {t['excess']:.3f}{mark(t)} | {t['p_value']:.3f} | {a['excess']:.3f}{mark(a)} | "
-                     f"{a['p_value']:.3f} |")
-    lines.append("")
+        lines.append(f"| {t['diagnostic']} | {t['excess']:.3f}{mark(t)} | {t['p_value']:.3f} | {100 * t['predictive_gain']:+.1f} % | "
+                     f"{a['excess']:.3f}{mark(a)} | {a['p_value']:.3f} | {100 * a['predictive_gain']:+.1f} % |")
+    lines += ["", f"Significant: sign-flip p < {s['alpha']}, excess >= {s['structure_min']:.2f} of the mismatch, and gain >= "
+              f"{s['structure_gain']:.0%}: the share of the held-out error that a per-bin cure-margin correction, fitted "
+              "with each fold's model on its training prints, removes from its held-out prints.", ""]
     if unexplained:
         lines.append(f"**Unexplained residual**: structure remains that no candidate explains, shown by: {', '.join(unexplained)}.")
     else:
@@ -831,5 +942,5 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     Path(path).write_text("\n".join(lines))
 
 
-__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "fold_spread", "structure_test", "geometry", "residual_sums", "spectrum",
+__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "fold_spread", "structure_test", "predictive_gain", "geometry", "residual_sums", "spectrum",
            "Heldout", "ERROR"]

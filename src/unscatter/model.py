@@ -654,7 +654,11 @@ class FixedMasks:
     with the measured print's pixels is an unbiased subsample of the full objective.
     """
 
-    def __init__(self, model: PrinterModel, masks: torch.Tensor, support_px: float = 48.0):
+    def __init__(self, model: PrinterModel, masks: torch.Tensor, support_px: float = 48.0, cache: dict | None = None):
+        """``cache``: a dict shared by evaluators of the same masks whose models differ only
+        in terms that need no spectra of their own (kernels, dose terms: the diagnosis's
+        candidates): the spectra are computed once per set of basis maps and kept there
+        (not for a response expansion, whose many terms would stay in memory)."""
         self.model = model
         self.masks = _as_masks(masks)
         _, self.H, self.W = self.masks.shape
@@ -672,15 +676,21 @@ class FixedMasks:
         if all(b is not None for b in bases) and (not model.response.params or expansion is not None):
             basis = {k: v for b in bases for k, v in b.items()}
             self.basis_names = list(basis)
-            if expansion is None:
-                responses = [model.response.apply(self.masks, {})]
-            else:  # response = sum_j a_j(theta) phi_j(M): spectra of basis_k * phi_j(M)
-                phis, coef = expansion
-                responses = [phi(self.masks) for phi in phis]
-                self.response_terms = (len(phis), coef)
-            # (K, B, Nh, Nw//2+1) complex (K = bases x response terms), as real pairs for one matrix product
-            spec = torch.stack([torch.fft.rfft2(v[None] * r, s=self.shape) for v in basis.values() for r in responses])
-            self.spectra = torch.view_as_real(spec).contiguous()
+            key = (self.shape, tuple(basis), model.response.name)
+            if expansion is None and cache is not None and key in cache:
+                self.spectra = cache[key]
+            else:
+                if expansion is None:
+                    responses = [model.response.apply(self.masks, {})]
+                else:  # response = sum_j a_j(theta) phi_j(M): spectra of basis_k * phi_j(M)
+                    phis, coef = expansion
+                    responses = [phi(self.masks) for phi in phis]
+                    self.response_terms = (len(phis), coef)
+                # (K, B, Nh, Nw//2+1) complex (K = bases x response terms), as real pairs for one matrix product
+                spec = torch.stack([torch.fft.rfft2(v[None] * r, s=self.shape) for v in basis.values() for r in responses])
+                self.spectra = torch.view_as_real(spec).contiguous()
+                if expansion is None and cache is not None:
+                    cache[key] = self.spectra
 
     @property
     def fast(self) -> bool:
