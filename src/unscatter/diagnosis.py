@@ -112,7 +112,9 @@ DEFAULTS = dict(
     # at 512 x 512: exact dose samples, an unbiased subsample of the objective; every pixel took 27 of 216 s there)
     check_size=256,
     starts=8,  # a candidate effect's parameters: refined starts spread over their bounds (0: none)
-    start_iters=8,  # L-BFGS iterations of each start (first temperature, GA sampling)
+    start_iters=8,  # L-BFGS iterations of the best starts (first temperature, GA sampling) ...
+    start_screen_iters=3,  # ... after every start had this many (successive halving) ...
+    start_keep=3,  # ... and these were the best
     bootstrap=2000,  # paired bootstrap replicates over prints
     min_improvement=0.03,  # accepted only if the mean held-out error drops by at least this share
     max_rounds=5,
@@ -225,19 +227,30 @@ class _Context:
 
     def _multistart(self, full: Space, objective: Objective, start: dict, new: list, seed: int, s: dict) -> dict:
         """The best of ``start`` and ``s['starts']`` refined starts spread over the bounds
-        of the parameters ``new`` (hard objective on ``objective``'s grid)."""
+        of the parameters ``new`` (hard objective on ``objective``'s grid).
+
+        Successive halving: every start gets ``start_screen_iters`` L-BFGS iterations,
+        the best ``start_keep`` of them the rest of ``start_iters``."""
         from scipy.stats import qmc
 
         idx = [full.names.index(k) for k in new]
         pts = qmc.Sobol(len(new), scramble=True, seed=np.random.default_rng([seed, 31])).random(int(s["starts"]))
-        tried = [dict(start)]
+        temps = s["temperatures"][:1]
+
+        def hard(values: list) -> np.ndarray:
+            return objective.hard(self.model.theta({k: np.array([t[k] for t in values]) for k in values[0]}, self.device))
+
+        screened = []
         for u in pts:
             st = dict(start)
             for j, i in enumerate(idx):
                 st[full.names[i]] = float(full.lo[i] + u[j] * (full.hi[i] - full.lo[i]))
-            tried.append(refine(full, objective, self.model, st, self.device, s["temperatures"][:1], s["start_iters"]))
-        theta = self.model.theta({k: np.array([t[k] for t in tried]) for k in tried[0]}, self.device)
-        scores = objective.hard(theta)
+            screened.append(refine(full, objective, self.model, st, self.device, temps, s["start_screen_iters"]))
+        rest = int(s["start_iters"]) - int(s["start_screen_iters"])
+        keep = set(np.argsort(hard(screened))[: int(s["start_keep"])].tolist()) if rest > 0 else set()
+        tried = [dict(start)] + [refine(full, objective, self.model, v, self.device, temps, rest) if i in keep else v
+                                 for i, v in enumerate(screened)]
+        scores = hard(tried)
         return tried[int(np.argmin(scores))]
 
     def predict(self, values: dict, idx) -> np.ndarray:
