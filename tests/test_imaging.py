@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from unscatter.imaging import RegistrationError, register_batch, transform_rms_px
-from unscatter.io import read_print, read_tsv
+from unscatter.io import read_print, read_tsv, read_yaml
 from unscatter.lab import print_batch
 from unscatter.metrics import iou
 
@@ -71,6 +71,10 @@ def test_round_trip_empty_and_faint_prints(lab_batch, tmp_path):
     assert all((out / "overlays" / f"{r['id']}.png").is_file() for r in qc)
     rms, ious = _evaluate(out, truth_dir)
     assert rms.mean() <= 0.5 and ious.mean() >= 0.97
+    # what a calibration needs to fit through this measurement (unscatter.measurement)
+    meas = read_yaml(out / "registration.yaml")["measurement"]
+    assert meas["level"] == 0.5 and 0.5 <= meas["smoothing_px"] <= 1.0 and 0 < meas["gel_share"] < 1
+    assert 0.3 <= meas["blur_px"] <= 4.0
 
 
 def test_print_that_fails_qc_is_never_passed_on(lab_batch, tmp_path):

@@ -25,6 +25,14 @@ The objective, the search, the refinement, the folds and the bootstrap live in
 ``unscatter.fitting``, which the diagnosis shares; this module loads the prints, runs
 them for Eq. 1 and writes the calibration's outputs.
 
+The measured prints are thresholded microscope images, not the cure: prints with a
+``registration.yaml`` that records its measurement are fitted through a measurement
+stage (``unscatter.measurement``: the density from Eq. 1's dose, blurred by the
+microscope, at the registration's level), whose blur is fitted by a profile after the
+GA (``_profile_blur``). The fitted parameters are Eq. 1's alone; params.yaml records
+the stage under ``measurement``. Setting ``measurement`` = "none" fits the prints as if
+they were the cure (as for prints without a registration.yaml).
+
 Inputs are registration outputs (``<id>.png`` prints in mask coordinates, ``qc.tsv``,
 ``batch.yaml``); prints with status ok or empty are used, failed ones never.
 """
@@ -53,9 +61,11 @@ from .fitting import (
     cross_validate,
     fit_params,
     grid_factor,
+    refine,
     residual_rgb,
 )
 from .io import InputError, output_dir, read_mask, read_print, read_tsv, read_yaml, write_rgb, write_tsv
+from .measurement import BLUR, MeasuredMasks, MeasuredModel, Measurement, from_registration
 from .settings import CALIBRATION
 from .model import (
     FixedMasks,
@@ -108,6 +118,9 @@ DEFAULTS = dict(
     # "pixel_error" weigh each print as the scores of prints (IoU, pixel error) do
     objective=_D.objective,
     area_floor=0.02,  # dice, pixel_error: a print's area counts as at least about this share of the field
+    # the measurement stage between the simulated cure and the measured print (unscatter.measurement):
+    # "registration" (what registration.yaml records; none for prints without it), "none", or a Measurement
+    measurement=_D.measurement,
 )
 
 # ----------------------------------------------------------------------------- data
@@ -218,7 +231,7 @@ def calibrate(prints_dirs, out_dir, model: str = _D.model, seed: int = _D.seed, 
     if unknown:
         raise TypeError(f"unknown calibration setting(s) {unknown}; known: {sorted(DEFAULTS)}")
     checked = {k: CALIBRATION.check(k, v) for k, v in dict(settings, model=model, seed=seed).items()
-               if k in CALIBRATION.settings and not (k == "threads" and v is None)}
+               if k in CALIBRATION.settings and not (k == "threads" and v is None) and not isinstance(v, Measurement)}
     s = {**DEFAULTS, **settings, **checked}
     if s["objective"] not in OBJECTIVES:
         raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
@@ -250,6 +263,18 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     log.info("calibrating %s on %d prints (%dx%d): GA on a %dx%d grid", model, B, H, W, H // f_ga, W // f_ga)
 
     sim = FixedMasks(m, masks_to_tensor(data.masks, device), support_px=support)
+    printer_params, printer_model = params, m
+    meas = _measurement(s["measurement"], data)
+    if meas is not None:
+        # the measured print is the density blurred at the registration's level: fit it so, the
+        # microscope's blur (unless given) along with the printer's parameters
+        log.info("fitting through the measurement: %s", meas.as_dict())
+        sim = MeasuredMasks(sim, meas)
+        # the search holds the blur (at the registration's estimate); the profile below fits it
+        params = Params(params.model, {**params.values, BLUR: float(np.clip(meas.blur_px, *meas.blur_bounds))},
+                        {**params.bounds, BLUR: tuple(meas.blur_bounds)}, (*params.fixed, BLUR), params.pixel_size_um)
+        m = MeasuredModel(m, meas)
+        space = Space(params)
     objs: dict[int, Objective] = {}
     def obj(f):
         if f not in objs:
@@ -267,6 +292,13 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
                      s["population"], s["generations"], desc="calibration GA")
     t_fit = time.perf_counter() - t0
     values = fit.values
+    profile = []
+    if meas is not None and meas.fit_blur:
+        values, profile = _profile_blur(params, m, obj, fit, f_ref if s["refine"] else None, device, s, meas)
+        params = params.with_values(**{BLUR: values[BLUR]})
+        space = Space(params)
+        fit.objective = profile_best = min(r["objective"] for r in profile)
+        log.info("measurement blur %.3f px (profile objective %.6g)", values[BLUR], profile_best)
 
     # -- fits on a bound --------------------------------------------------------
     on_bound = {}
@@ -301,9 +333,11 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         log.warning(w)
 
     # -- outputs -----------------------------------------------------------------
-    fitted = params.with_values(**values)
+    if meas is not None and BLUR in values:
+        meas = meas.with_blur(values[BLUR])
+    fitted = printer_params.with_values(**{k: v for k, v in values.items() if k != BLUR})
     entries = {}
-    for k in m.names:
+    for k in printer_model.names:
         e = {}
         if k in unc.get("parameters", {}):
             e.update(unc["parameters"][k])
@@ -322,7 +356,11 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
                                **{f"{k}_every": v for k, v in fit.factors.items()}),
                  population=s["population"], generations=s["generations"], on_bound=sorted(on_bound),
                  seconds=round(t_fit, 2),
-                 settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("progress", "device")}),
+                 settings={k: (list(v) if isinstance(v, tuple) else v.as_dict() if isinstance(v, Measurement) else v)
+                           for k, v in s.items() if k not in ("progress", "device")}),
+        measurement=dict(meas.as_dict(), profile=[{k: round(v, 6) for k, v in r.items()} for r in profile], note="fitted through this measurement stage (unscatter.measurement): the measured print is "
+                         "the density, blurred, at the level; the parameters are the printer's, without it")
+        if meas is not None else None,
         validation=dict(cv_summary, seconds=round(t_cv, 2)),
         uncertainty=dict({k: v for k, v in unc.items() if k != "parameters"}, seconds=round(t_boot, 2)),
         warnings=run_warnings,
@@ -343,6 +381,81 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     from .model import load_params
 
     return load_params(out_dir / "params.yaml")
+
+
+def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Measurement, step: float = 1.0):
+    """The measurement's blur by its profile: for blurs on a grid over its bounds, the
+    printer's parameters refined from the search's optimum, the scattering sigma moved
+    along sqrt(sigma^2 + blur^2), which the two trade along, and scored by the hard
+    objective on every pixel; then at the vertex of a parabola through the best and its
+    neighbours. The profile's differences are small (a few 1e-3 of the objective), so
+    each point is a full refinement (both temperatures) on the refinement's grid: on the
+    search's coarser grid the density's aliasing, and with one temperature the
+    refinement's own error, move its minimum.
+
+    A search over both at once fails here: blur and sigma trade along a long, narrow
+    valley (the measured width is about their quadrature sum) that the GA does not
+    follow. Returns (values, profile rows)."""
+    check = obj(1)
+    lo, hi = meas.blur_bounds
+    b0 = float(fit.values[BLUR])
+    width2 = float(fit.values["sigma_px"]) ** 2 + b0**2
+    sig_lo = params.bounds["sigma_px"][0]
+
+    def at(b, f, temperatures):
+        start = dict(fit.values, **{BLUR: float(b), "sigma_px": float(np.sqrt(max(width2 - b * b, sig_lo**2)))})
+        p_b = params.with_values(**{BLUR: float(b)})
+        cand = start
+        if f is not None:
+            cand = refine(Space(p_b), obj(band_factor(obj(1).sim, m, start, f)), m, start, device, temperatures, s["refine_iters"])
+        f_start, f_cand = (float(check.hard(m.theta(v, device))[0]) for v in (start, cand))
+        v, f = (cand, f_cand) if f_cand < f_start else (start, f_start)
+        return v, f
+
+    grid = np.arange(lo, hi + 1e-9, step)
+    rows, best = [], None
+    for b in grid:
+        v, f = at(b, f_ref, tuple(s["temperatures"]))
+        rows.append(dict(blur_px=float(b), objective=f, sigma_px=float(v["sigma_px"]), T=float(v["T"])))
+        if best is None or f < best[1]:
+            best = (v, f)
+    i = int(np.argmin([r["objective"] for r in rows]))
+    if 0 < i < len(rows) - 1:  # the parabola's vertex through the best and its neighbours
+        y0, y1, y2 = (rows[j]["objective"] for j in (i - 1, i, i + 1))
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            b = float(np.clip(grid[i] + 0.5 * step * (y0 - y2) / den, grid[i - 1], grid[i + 1]))
+            v, f = at(b, f_ref, tuple(s["temperatures"]))
+            rows.append(dict(blur_px=b, objective=f, sigma_px=float(v["sigma_px"]), T=float(v["T"])))
+            if f < best[1]:
+                best = (v, f)
+    return best[0], rows
+
+
+def _measurement(setting, data: PrintSet) -> Measurement | None:
+    """The measurement stage of a calibration (setting ``measurement``): a Measurement as
+    given, none, or what the prints' registrations record (registration.yaml; several
+    registrations: their mean numbers, one level). None where no registration recorded one."""
+    if setting is None or setting == "none":
+        return None
+    if isinstance(setting, Measurement):
+        return setting
+    if setting != "registration":
+        raise ValueError(f"measurement must be 'registration', 'none' or a Measurement, got {setting!r}")
+    found, missing = [], []
+    for d in data.prints_dirs:
+        f = Path(d) / "registration.yaml"
+        mm = from_registration(read_yaml(f)) if f.is_file() else None
+        (found if mm is not None else missing).append(mm if mm is not None else d)
+    if not found:
+        return None
+    if missing:
+        raise InputError(Path(missing[0]), "records no measurement (registration.yaml) while the other prints folders do; "
+                         "calibrate them apart, or set the calibration's measurement to 'none'")
+    if len({m.level for m in found}) > 1:
+        raise InputError(Path(data.prints_dirs[0]), "the registrations thresholded at different levels; calibrate them apart")
+    mean = {k: float(np.mean([getattr(m, k) for m in found])) for k in ("blur_px", "smoothing_px", "gel_share")}
+    return Measurement(level=found[0].level, **mean)
 
 
 def _simulated(m, full: Objective, values, device) -> np.ndarray:

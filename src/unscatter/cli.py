@@ -257,10 +257,11 @@ def _bounds(ctx, param, value):
 @option(S.CALIBRATION, "refine")
 @option(S.CALIBRATION, "folds")
 @option(S.CALIBRATION, "bootstrap")
+@option(S.CALIBRATION, "measurement")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 @option(S.CALIBRATION, "threads")
 def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, objective, refine, folds,
-                  bootstrap, device, threads):
+                  bootstrap, measurement, device, threads):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
 
@@ -276,7 +277,7 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
         warnings.simplefilter("ignore", UserWarning)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
                       bounds=bounds, free_c0=free_c0, objective=objective, refine=refine, folds=folds,
-                      bootstrap=bootstrap, device=device, threads=threads)
+                      bootstrap=bootstrap, measurement=measurement, device=device, threads=threads)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""

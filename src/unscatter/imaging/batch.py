@@ -338,13 +338,32 @@ def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarr
     return print_template(tmpl, B, x, fit.q)[0]
 
 
+def smoothing_px(scale: float) -> float:
+    """The smoothing against noise before the threshold (design px): about one image pixel."""
+    return max(0.5, 0.6 / scale)
+
+
 def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int):
     """The corrected image in design coordinates and the print: smoothed against noise
     over about one image pixel, then the batch threshold. Returns (registered, print)."""
     reg = warp_to_design(c, M, design_px)
     scale = np.sqrt(abs(np.linalg.det(M[:, :2])))
-    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), max(0.5, 0.6 / scale))
+    reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), smoothing_px(scale))
     return reg, reg_s >= thr
+
+
+def measurement_record(template: dict, rows: list[dict], level: float) -> dict:
+    """What a calibration needs to simulate this measurement (``unscatter.measurement``),
+    for registration.yaml: the microscope's blur as the print template measured it (the
+    median focus blur of the ok prints, design px; a calibration fits it, starting here),
+    the smoothing before the threshold (median, design px), the gel dose as a share of
+    the dose at which the template's cure reaches half of saturation, and the level."""
+    ok = [r for r in rows if r["status"] == "ok" and r.get("blur") not in ("", None)]
+    blur = float(np.median([float(r["blur"]) for r in ok])) if ok else float(template["blur"])
+    smooth = float(np.median([smoothing_px(float(r["scale"])) for r in ok])) if ok else 0.5
+    gel, k = max(float(template["gel"]), 0.0), max(float(template["k"]), 1e-3)
+    return dict(blur_px=round(blur, 4), smoothing_px=round(smooth, 4),
+                gel_share=round(float(np.clip(gel / (gel + k * np.log(2.0)), 0.1, 0.9)), 4), level=float(level))
 
 
 def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
@@ -657,6 +676,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
+                                                   measurement=measurement_record(p, rows, s.level),
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed))))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")

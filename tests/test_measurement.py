@@ -1,0 +1,123 @@
+"""The measurement stage of the calibration (unscatter.measurement): a print measured
+through a blurring microscope is fitted without putting the blur into the printer's
+scattering kernel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy import ndimage
+
+from unscatter.calibration import calibrate
+from unscatter.io import read_yaml, write_png, write_tsv, write_yaml
+from unscatter.masks import trial_masks
+from unscatter.measurement import Measurement, MeasuredMasks, blur, density, measured
+from unscatter.model import FixedMasks, default_params, eq1, masks_to_tensor
+
+
+def test_without_blur_the_measured_print_is_eq1s():
+    """No blur and no haze: density >= level exactly where the dose reaches T."""
+    rng = np.random.default_rng(0)
+    dose = torch.from_numpy(rng.uniform(0, 1, (2, 3, 40, 40)).astype(np.float32))
+    theta = {"T": torch.tensor([0.45, 0.6])}
+    for g in (0.3, 0.7):
+        got = measured(dose, theta, Measurement(blur_px=0.0, smoothing_px=0.0, gel_share=g))
+        want = dose >= theta["T"][:, None, None, None]
+        assert (got != want).float().mean() < 1e-3  # only doses within rounding of T may differ
+        rho = density(dose, theta["T"], g)
+        assert float(rho.min()) >= 0 and float(rho.max()) < 1
+        assert torch.all(rho[dose < g * theta["T"][:, None, None, None]] == 0)  # nothing below the gel dose
+
+
+def test_blur_is_scipys_gaussian_and_differentiable():
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 1, (1, 2, 50, 60)).astype(np.float32)
+    for s in (0.7, 1.5, 3.0):
+        got = blur(torch.from_numpy(img), s).numpy()
+        want = np.stack([ndimage.gaussian_filter(x, s, mode="constant", truncate=6.0) for x in img[0]])[None]
+        assert np.abs(got - want).max() < 2e-3
+    sig = torch.tensor([1.2], requires_grad=True)
+    blur(torch.from_numpy(img), sig).sum().backward()
+    assert sig.grad is not None and torch.isfinite(sig.grad).all()
+
+
+def test_decimated_evaluator_samples_the_full_one():
+    """``decimated(f)`` compares the same pixels as the full evaluator's every f-th."""
+    masks = trial_masks(3, seed=2, size=128)
+    m = eq1()
+    p = default_params("eq1").with_values(sigma_px=3.0, T=0.5)
+    sim = MeasuredMasks(FixedMasks(m, masks_to_tensor(np.stack(list(masks.values()))), support_px=48), Measurement(blur_px=1.5))
+    theta = m.theta(p)
+    full = sim.prints(theta)
+    assert sim.decimated(2).prints(theta).shape == full[..., ::2, ::2].shape
+    agree = (sim.decimated(2).prints(theta) == full[..., ::2, ::2]).float().mean()
+    assert agree > 0.99  # the coarse grid is the search's approximation, close to the full one
+    sub = sim.subset([2, 0])
+    assert torch.equal(sub.prints(theta), full[:, [2, 0]])
+
+
+@pytest.fixture(scope="module")
+def blurred_lab(tmp_path_factory):
+    """Prints of a small-kernel lab (paper physics) measured through a microscope blur
+    comparable to its scattering: the lab's density, blurred (scipy), at half of saturation."""
+    from unscatter.lab import Printer, load_config
+
+    root = tmp_path_factory.mktemp("blurred")
+    over = {"printer": {"kernel": {"sigma_um": 7.4, "heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
+                        "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0,
+                        "cure": {"threshold": 0.5, "gel_dose": 0.3}}}
+    cfg = load_config(overrides=over)
+    px = cfg["batch"]["pixel_size_um"]
+    size, blur_px = 192, 1.6
+    printer = Printer(cfg["printer"], size, px)
+    rows = []
+    for i, (mid, mask) in enumerate(trial_masks(16, seed=3, size=size).items()):
+        rho = printer.crop(printer.density(mask, np.random.default_rng([7, i])))
+        pr = ndimage.gaussian_filter(rho, blur_px) >= 0.5
+        write_png(root / "masks" / f"{mid}.png", mask)
+        write_png(root / f"{mid}.png", pr)
+        rows.append(dict(id=mid, status="ok" if pr.any() else "empty", reason="", mask=f"masks/{mid}.png"))
+    write_tsv(root / "qc.tsv", rows, ["id", "status", "reason", "mask"])
+    write_yaml(root / "batch.yaml", dict(pixel_size_um=px))
+    return root, dict(sigma_px=7.4 / px, T=0.5, blur_px=blur_px)
+
+
+FIT = dict(population=16, generations=8, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False, threads=1)
+
+
+def _record(root, gel_share):
+    """registration.yaml's measurement: the blur's start is off (0.8 px); the calibration fits it."""
+    write_yaml(root / "registration.yaml", dict(measurement=dict(blur_px=0.8, smoothing_px=0.0, gel_share=gel_share, level=0.5)))
+
+
+def test_fitting_through_the_measurement_recovers_sigma(blurred_lab, tmp_path):
+    root, truth = blurred_lab
+    try:
+        _record(root, 0.6)  # the lab's gel share
+        through = calibrate(root, tmp_path / "through", seed=0, **FIT)
+        _record(root, 0.45)  # a print template's estimate can be this far off
+        off = calibrate(root, tmp_path / "off", seed=0, **FIT)
+    finally:
+        (root / "registration.yaml").unlink()
+    plain = calibrate(root, tmp_path / "plain", seed=0, **FIT)  # no registration.yaml: as before the stage
+    rel, rel_off, rel_plain = (p.values["sigma_px"] / truth["sigma_px"] - 1 for p in (through, off, plain))
+    assert rel_plain > 0.1  # the bias: without the measurement the blur goes into sigma
+    assert abs(rel) < 0.05, (rel, rel_plain)
+    assert abs(through.values["T"] / truth["T"] - 1) < 0.05
+    assert abs(rel_off) < 0.5 * rel_plain, (rel_off, rel_plain)  # a wrong gel share: less, but still an error
+    meas = read_yaml(tmp_path / "through" / "params.yaml")["measurement"]
+    assert abs(meas["blur_px"] - truth["blur_px"]) < 0.4
+    assert meas["blur_fitted"] and len(meas["profile"]) >= 5
+    assert read_yaml(tmp_path / "plain" / "params.yaml").get("measurement") is None
+    # the calibrated printer model is Eq. 1's: params.yaml holds no measurement parameter
+    assert set(through.values) == set(default_params("eq1").values)
+
+
+def test_prints_without_a_registration_are_fitted_as_before(blurred_lab, tmp_path):
+    root, _ = blurred_lab
+    a = calibrate(root, tmp_path / "a", seed=1, **FIT)
+    b = calibrate(root, tmp_path / "b", seed=1, measurement="none", **FIT)
+    assert a.values == b.values
+    with pytest.raises(ValueError):
+        calibrate(root, tmp_path / "c", seed=1, measurement="microscope", **FIT)
