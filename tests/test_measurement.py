@@ -95,12 +95,14 @@ def test_fitting_through_the_measurement_recovers_sigma(blurred_lab, tmp_path):
     root, truth = blurred_lab
     try:
         _record(root, 0.6)  # the lab's gel share
-        through = calibrate(root, tmp_path / "through", seed=0, **FIT)
+        through = calibrate(root, tmp_path / "through", seed=0, measurement="registration", **FIT)
         _record(root, 0.45)  # a print template's estimate can be this far off
-        off = calibrate(root, tmp_path / "off", seed=0, **FIT)
+        off = calibrate(root, tmp_path / "off", seed=0, measurement="registration", **FIT)
+        default = calibrate(root, tmp_path / "default", seed=0, **FIT)  # the default ignores the record
     finally:
         (root / "registration.yaml").unlink()
-    plain = calibrate(root, tmp_path / "plain", seed=0, **FIT)  # no registration.yaml: as before the stage
+    plain = calibrate(root, tmp_path / "plain", seed=0, measurement="registration", **FIT)  # no registration.yaml: none
+    assert default.values == plain.values
     rel, rel_off, rel_plain = (p.values["sigma_px"] / truth["sigma_px"] - 1 for p in (through, off, plain))
     assert rel_plain > 0.1  # the bias: without the measurement the blur goes into sigma
     assert abs(rel) < 0.05, (rel, rel_plain)
@@ -116,7 +118,7 @@ def test_fitting_through_the_measurement_recovers_sigma(blurred_lab, tmp_path):
 
 def test_prints_without_a_registration_are_fitted_as_before(blurred_lab, tmp_path):
     root, _ = blurred_lab
-    a = calibrate(root, tmp_path / "a", seed=1, **FIT)
+    a = calibrate(root, tmp_path / "a", seed=1, measurement="registration", **FIT)
     b = calibrate(root, tmp_path / "b", seed=1, measurement="none", **FIT)
     assert a.values == b.values
     with pytest.raises(ValueError):

@@ -306,11 +306,12 @@ CALIBRATION = Stage(
                       "dice - 1 - Dice per print (IoU's twin). The diagnosis scores held-out prints with the same one. "
                       "On random labs mismatch named the effects as well or better (benchmarks/bench_diagnosis.py)."),
     refine=_bool(True, "Gradient refinement (L-BFGS on a smooth threshold) after the GA.", workflow=False),
-    measurement=_choice("registration", ("registration", "none"),
+    measurement=_choice("none", ("registration", "none"),
                         "The measurement between the simulated cure and the measured print (unscatter.measurement): "
-                        "registration - the density blurred by the microscope (its blur fitted) and thresholded at the "
-                        "registration's level, as registration.yaml records it (prints without one: none); none - the "
-                        "measured prints taken for the cure itself.", workflow=False),
+                        "none - the measured prints taken for the cure itself (the paper's; the default until the "
+                        "stage wins on random labs, see the README); registration - the density blurred by the "
+                        "microscope (its blur fitted) and thresholded at the registration's level, as "
+                        "registration.yaml records it (prints without one: none).", workflow=False),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
 )
 
