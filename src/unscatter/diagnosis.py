@@ -15,7 +15,7 @@ minus simulated print) carries what the model lacks. The loop here:
    added to the current model and fitted per fold, warm-started from the current
    model's fold fit: first a multi-start over the effect's own parameters (``starts``
    points spread over their bounds, each refined by a short L-BFGS run of all
-   parameters; at the neutral value the gradient may not reach an effect's other
+   parameters, the most promising longer (successive halving); at the neutral value the gradient may not reach an effect's other
    parameters, e.g. a tail's length at zero tail), then a small GA around the best
    start and the gradient refinement (``fitting.fit_params``).
    A candidate is accepted when the paired bootstrap over prints of the per-print
@@ -185,7 +185,7 @@ class _Context:
         """Fit on prints ``idx`` from ``start``. Parameters not in ``known`` (a candidate
         effect's) get a multi-start first: ``starts`` points spread over their bounds
         (scrambled Sobol), each with the others at ``start``, each refined by a short
-        L-BFGS run that moves all parameters together; the best by the hard objective
+        L-BFGS run that moves all parameters together (``_multistart``); the best by the hard objective
         becomes the centre. Then the GA in a box (+- span around the centre's known
         parameters, full bounds for the others) with the centre and ``start`` in its
         population, then the refinement; kept only where they lower the objective on
