@@ -25,13 +25,13 @@ The objective, the search, the refinement, the folds and the bootstrap live in
 ``unscatter.fitting``, which the diagnosis shares; this module loads the prints, runs
 them for Eq. 1 and writes the calibration's outputs.
 
-The measured prints are thresholded microscope images, not the cure: prints with a
-``registration.yaml`` that records its measurement are fitted through a measurement
-stage (``unscatter.measurement``: the density from Eq. 1's dose, blurred by the
-microscope, at the registration's level), whose blur is fitted by a profile after the
-GA (``_profile_blur``). The fitted parameters are Eq. 1's alone; params.yaml records
-the stage under ``measurement``. Setting ``measurement`` = "none" fits the prints as if
-they were the cure (as for prints without a registration.yaml).
+The measured prints are thresholded microscope images, not the cure. With the setting
+``measurement`` = "registration" (opt-in; the default "none" fits the prints as if they
+were the cure, the paper's way), prints whose ``registration.yaml`` records its
+measurement are fitted through a measurement stage (``unscatter.measurement``: the
+density from Eq. 1's dose, blurred by the microscope, at the registration's level),
+whose blur is fitted by a profile after the GA (``_profile_blur``). The fitted
+parameters are Eq. 1's alone; params.yaml records the stage under ``measurement``.
 
 Inputs are registration outputs (``<id>.png`` prints in mask coordinates, ``qc.tsv``,
 ``batch.yaml``); prints with status ok or empty are used, failed ones never.
@@ -358,13 +358,15 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
                  seconds=round(t_fit, 2),
                  settings={k: (list(v) if isinstance(v, tuple) else v.as_dict() if isinstance(v, Measurement) else v)
                            for k, v in s.items() if k not in ("progress", "device")}),
-        measurement=dict(meas.as_dict(), profile=[{k: round(v, 6) for k, v in r.items()} for r in profile], note="fitted through this measurement stage (unscatter.measurement): the measured print is "
-                         "the density, blurred, at the level; the parameters are the printer's, without it")
-        if meas is not None else None,
         validation=dict(cv_summary, seconds=round(t_cv, 2)),
         uncertainty=dict({k: v for k, v in unc.items() if k != "parameters"}, seconds=round(t_boot, 2)),
         warnings=run_warnings,
     )
+    if meas is not None:
+        fitted.info["measurement"] = dict(
+            meas.as_dict(), profile=[{k: round(v, 6) for k, v in r.items()} for r in profile],
+            note="fitted through this measurement stage (unscatter.measurement): the measured print is the density, "
+                 "blurred, at the level; the parameters are the printer's, without it")
     out_dir.mkdir(parents=True, exist_ok=True)
     save_params(out_dir / "params.yaml", fitted)
     hist_cols = ["generation", "nevals", "best", "mean", "std"] + space.names
@@ -413,11 +415,14 @@ def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Mea
         return v, f
 
     grid = np.arange(lo, hi + 1e-9, step)
-    rows, best = [], None
+    # the search's own fit (at the recorded blur) stays a candidate
+    searched = dict(blur_px=b0, objective=float(check.hard(m.theta(fit.values, device))[0]),
+                    sigma_px=float(fit.values["sigma_px"]), T=float(fit.values["T"]))
+    rows, best = [], (fit.values, searched["objective"])
     for b in grid:
         v, f = at(b, f_ref, tuple(s["temperatures"]))
         rows.append(dict(blur_px=float(b), objective=f, sigma_px=float(v["sigma_px"]), T=float(v["T"])))
-        if best is None or f < best[1]:
+        if f < best[1]:
             best = (v, f)
     i = int(np.argmin([r["objective"] for r in rows]))
     if 0 < i < len(rows) - 1:  # the parabola's vertex through the best and its neighbours
@@ -429,7 +434,7 @@ def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Mea
             rows.append(dict(blur_px=b, objective=f, sigma_px=float(v["sigma_px"]), T=float(v["T"])))
             if f < best[1]:
                 best = (v, f)
-    return best[0], rows
+    return best[0], rows + [searched]
 
 
 def _measurement(setting, data: PrintSet) -> Measurement | None:

@@ -86,6 +86,7 @@ from .model import (
     FixedMasks,
     Params,
     default_device,
+    default_params,
     effect_names,
     extend_params,
     get_model,
@@ -120,7 +121,7 @@ DEFAULTS = dict(
     max_rounds=5,
     alpha=0.01,  # structure test: sign-flip p-value below this ...
     structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch ...
-    structure_gain=0.03,  # ... and a per-bin correction fitted on other folds removes this share of the held-out error
+    structure_gain=0.03,  # ... and a per-bin correction (predictive_gain) removes this share of the held-out error
     permutations=999,
     radii_um=(10.0, 30.0, 100.0, 300.0),
     band_um=30.0,  # binned diagnostics (but the signed distance) use pixels this close to a mask edge
@@ -157,17 +158,19 @@ ERROR = ERRORS["mismatch"]
 class _Context:
     """One model over all prints: the fast evaluator and its objectives per sampling."""
 
-    def __init__(self, params: Params, data, device, s, shared: dict):
-        """``shared``: caches kept over one diagnosis: the masks' spectra (``FixedMasks``)
-        and the training objective of each fold's start (``_start_key``)."""
+    def __init__(self, params: Params, data, device, s, shared: dict, keep: bool = False):
+        """``shared``: caches kept over one diagnosis: the masks' spectra (``FixedMasks``;
+        only a context with ``keep`` adds to it, the current model's, so that it holds one
+        set) and the training objective of each fold's start (``_start_key``)."""
         self.params = params
         self.model = get_model(params.model)
         self.device = device
         self.data = data
         self.shared = shared
         support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
+        spectra = shared.setdefault("spectra", {})
         self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support,
-                              cache=shared.setdefault("spectra", {}))
+                              cache=spectra if keep else dict(spectra))
         self._objs: dict[int, Objective] = {}
         self.objective, self.area_floor = s["objective"], s["area_floor"]
         self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
@@ -216,9 +219,9 @@ class _Context:
         settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters", "objective", "area_floor")},
                     "progress": False}
         init = [space.encode(centre)] + ([space.encode(start)] if centre is not start else [])
-        f_check = band_factor(self.sim, self.model, centre, self.f_check)
-        fit = fit_params(space, self.model, obj, f_ga, f_ref, f_check, self.device, seed, settings, s["population"],
+        fit = fit_params(space, self.model, obj, f_ga, f_ref, self.f_check, self.device, seed, settings, s["population"],
                          s["generations"], init=init, desc=desc, history=False)
+        f_check = fit.factors["check"]  # the grid fit_params scored its result on
         starts = self.shared.setdefault("start", {})
         key = _start_key(idx, start) + (f_check,)
         if key not in starts:
@@ -236,6 +239,7 @@ class _Context:
         idx = [full.names.index(k) for k in new]
         pts = qmc.Sobol(len(new), scramble=True, seed=np.random.default_rng([seed, 31])).random(int(s["starts"]))
         temps = s["temperatures"][:1]
+        screen = min(int(s["start_screen_iters"]), int(s["start_iters"]))
 
         def hard(values: list) -> np.ndarray:
             return objective.hard(self.model.theta({k: np.array([t[k] for t in values]) for k in values[0]}, self.device))
@@ -245,8 +249,8 @@ class _Context:
             st = dict(start)
             for j, i in enumerate(idx):
                 st[full.names[i]] = float(full.lo[i] + u[j] * (full.hi[i] - full.lo[i]))
-            screened.append(refine(full, objective, self.model, st, self.device, temps, s["start_screen_iters"]))
-        rest = int(s["start_iters"]) - int(s["start_screen_iters"])
+            screened.append(refine(full, objective, self.model, st, self.device, temps, screen))
+        rest = int(s["start_iters"]) - screen
         keep = set(np.argsort(hard(screened))[: int(s["start_keep"])].tolist()) if rest > 0 else set()
         tried = [dict(start)] + [refine(full, objective, self.model, v, self.device, temps, rest) if i in keep else v
                                  for i, v in enumerate(screened)]
@@ -270,14 +274,16 @@ class _Context:
         return out
 
 
-_NEUTRAL = {sp.name: sp.default for e in EFFECTS.values() for sp in e.params}
+_EQ1 = default_params("eq1").values
+_NEUTRAL = {sp.name: sp.default for e in EFFECTS.values() for sp in e.params if sp.name not in _EQ1}
 
 
 def _start_key(idx, start: dict) -> tuple:
     """The prints and the parameters a fit starts from, effect parameters at their neutral
     default left out: a candidate's start (the current model's fold fit plus the effect
-    at neutral) simulates the same prints as the current model's, so one training
-    objective serves the control and every candidate of a round."""
+    at neutral) simulates the same prints as the current model's (to float precision,
+    and to 2e-4 of the dose for dose_nonlinearity's interpolation at gamma 1), so one
+    training objective serves the control and every candidate of a round."""
     prints = None if idx is None else tuple(int(i) for i in np.asarray(idx))
     return prints, tuple(sorted((k, float(v)) for k, v in start.items() if not (k in _NEUTRAL and float(v) == _NEUTRAL[k])))
 
@@ -777,7 +783,8 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
             break
         # the control: the current model refitted from its fold fits with the candidates'
         # budget, so that an improvement is the effect's and not the extra optimisation's
-        ctx = _Context(cur_params, data, device, s, shared)
+        shared["spectra"] = {}  # the current model's spectra: the control's, read by the candidates
+        ctx = _Context(cur_params, data, device, s, shared, keep=True)
         ctl = _heldout(ctx, cur.fold_values, folds, s, set(cur_params.free), seed + 1000 * rnd, "control", bar)
         del ctx
         if ctl.error.mean() <= cur.error.mean():

@@ -13,7 +13,7 @@ bench_calibration_bias.py``).
 
 The measurement stage here is applied to the printer model's dose (Eq. 1 unchanged):
 
-    density   rho = 1 - 2^(-max(D / T - g, 0) / (1 - g))      (half of saturation at D = T)
+    density   rho = 1 - (1 - level)^(max(D / T - g, 0) / (1 - g))   (rho = level at D = T)
     imaged    I   = G_blur * rho                               (the microscope and the
                                                                 registration's smoothing)
     measured  P   = I >= level                                 (the registration's level)

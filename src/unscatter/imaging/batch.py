@@ -363,7 +363,7 @@ def measurement_record(template: dict, rows: list[dict], level: float) -> dict:
     smooth = float(np.median([smoothing_px(float(r["scale"])) for r in ok])) if ok else 0.5
     gel, k = max(float(template["gel"]), 0.0), max(float(template["k"]), 1e-3)
     return dict(blur_px=round(blur, 4), smoothing_px=round(smooth, 4),
-                gel_share=round(float(np.clip(gel / (gel + k * np.log(2.0)), 0.1, 0.9)), 4), level=float(level))
+                gel_share=round(float(np.clip(gel / (gel - k * np.log1p(-level)), 0.1, 0.9)), 4), level=float(level))
 
 
 def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
