@@ -55,20 +55,6 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.default_rng([seed, lab, what]).integers(2**31))
 
 
-def _truth_folder(masks: dict, prints: dict, px: float, out: Path) -> Path:
-    """A registration-like folder of the lab's true prints (mask coordinates)."""
-    from unscatter.io import write_png, write_tsv, write_yaml
-
-    rows = []
-    for mid, m in masks.items():
-        write_png(out / "masks" / f"{mid}.png", m)
-        write_png(out / f"{mid}.png", prints[mid])
-        rows.append(dict(id=mid, status="ok" if prints[mid].any() else "empty", reason="", mask=f"masks/{mid}.png"))
-    write_tsv(out / "qc.tsv", rows, ["id", "status", "reason", "mask"])
-    write_yaml(out / "batch.yaml", dict(pixel_size_um=px))
-    return out
-
-
 def edge_length(p: np.ndarray) -> float:
     from scipy import ndimage
 
@@ -139,7 +125,9 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
         n, miss = thin_lost(t, reg)
         thin_n += n
         thin_miss += miss
-    _truth_folder(trial, truth, px, d / "truth_prints")
+    from bench_diagnosis import _write_batch  # a registration-like folder of prints in mask coordinates
+
+    _write_batch(d / "truth_prints", trial, truth, px)
 
     # held-out masks, printed by the lab in mask coordinates; the floor from 7 other prints
     held = {f"pat_{k}": m for k, m in test_pattern_masks(a.heldout, seed=_substream(seed, i, 3), size=a.size).items()}

@@ -531,14 +531,14 @@ def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins
     hist = {n: np.zeros((2, 2, F, len(geo.labels[n]), K + 1)) for n in geo.names}
     ok = {n: [g[n].ravel() >= 0 for g in geo.bins] for n in geo.names}
     total = float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(B)))
-    for f in range(F):
-        for i in range(B):
-            p = prints[i].ravel().astype(np.int64)
+    for i in range(B):
+        p = prints[i].ravel().astype(np.int64)
+        base = {n: (p[ok[n][i]] * len(geo.labels[n]) + geo.bins[i][n].ravel()[ok[n][i]]) * (K + 1) for n in geo.names}
+        for f in range(F):
             j = np.searchsorted(t, margins[f, i].ravel().astype(np.float32), side="right")
             for n in geo.names:
                 nb = len(geo.labels[n])
-                sel = ok[n][i]
-                code = ((test[f, i] * 2 + p[sel]) * nb + geo.bins[i][n].ravel()[sel]) * (K + 1) + j[sel]
+                code = test[f, i] * 2 * nb * (K + 1) + base[n] + j[ok[n][i]]
                 hist[n][:, :, f] += w[i] * np.bincount(code, minlength=4 * nb * (K + 1)).reshape(2, 2, nb, K + 1)
     out = {}
     tie = 1e-9 * np.abs(t)
