@@ -26,7 +26,9 @@ the worst prints) under ``--out``.
 A print is *silently wrong* when registration reports it ``ok`` with a pose error above
 1.5 mask px, or ``empty`` although the lab's noise-free print has more than 0.05 % of
 the field solid (131 mask px, a dot of 13 px across; registration's own empty test
-counts 30 px). A ``failed`` print is not silently wrong: QC said so.
+counts 30 px). A ``failed`` print is not silently wrong: QC said so. The summary also
+splits the failed prints by their true pose error (QC too cautious, or right) and sets
+the ok prints' true error against the spreads QC judged them by (``qc_lines``).
 """
 
 from __future__ import annotations
@@ -76,7 +78,8 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
         tp = read_print(truth_dir / "prints" / f"{mid}.png")
         row = dict(id=mid, status=q["status"], reason=q.get("reason", ""), truth_solid=float(tp.mean()),
                    true_rotation_deg=_float(t["rotation_deg"]), true_scale=_float(t["scale"]),
-                   rotation_deg=_float(q.get("rotation_deg")), scale=_float(q.get("scale")), score=_float(q.get("score")))
+                   rotation_deg=_float(q.get("rotation_deg")), scale=_float(q.get("scale")), score=_float(q.get("score")),
+                   pose_sd=_float(q.get("pose_sd")), size_sd=_float(q.get("size_sd")))
         Mt, Me = _matrix(t), _matrix(q)
         if Me is not None:
             row["rms_px"] = transform_rms_px(Me, Mt, size)
@@ -214,6 +217,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
     L.append(f"  (images of {', '.join(f'{h}x{w}' for h, w in (lab['image_size'] for lab in labs))}; judged on the time "
              f"scaled to 720x720 by pixel count: median {np.median(per32 / mpx):.1f} s, max {np.max(per32 / mpx):.1f} s)")
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
+    L += qc_lines(rows)
     L += ["", f"silently wrong ({len(silent)}): ok with pose error > {SILENT_POSE_PX} px, or empty with truth solid > {SILENT_EMPTY_SOLID}"]
     for r in sorted(silent, key=lambda r: -r.get("rms_px", 0)):
         L.append(f"  lab {r['lab']}  {r['id']:22s} {r['pattern']:15s} {r['status']:6s} pose error {_fmt(r.get('rms_px'), '.2f')} px  "
@@ -232,6 +236,30 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
                  f"  {_fmt(float(np.mean([r['iou'] for r in sc])) if sc else float('nan'), '.4f')}"
                  f" ({_fmt(float(np.mean(perf)) if perf else float('nan'), '.4f')})")
     return "\n".join(L)
+
+
+def qc_lines(rows: list[dict]) -> list[str]:
+    """Whether QC's verdicts match the truth: the failed prints split by their true pose
+    error (a failure with the pose in fact within SILENT_POSE_PX is QC too cautious; one
+    further off, QC catching a wrong pose; no pose: nothing to register, or no pose
+    refined), and the ok prints' true error against the spreads QC judged them by
+    (``pose_sd``: noise and template misfit; ``size_sd``: feature sizes)."""
+    failed = [r for r in rows if r["status"] == "failed"]
+    err = np.array([r.get("rms_px", np.nan) for r in failed], float)
+    good, off = int(np.sum(err <= SILENT_POSE_PX)), int(np.sum(err > SILENT_POSE_PX))
+    L = [f"  failed prints by their true pose error: {good} within {SILENT_POSE_PX} px (QC too cautious), {off} further "
+         f"off (QC right), {len(failed) - good - off} without a pose"]
+    ok = [r for r in rows if r["status"] == "ok" and np.isfinite(r.get("rms_px", np.nan))]
+    e = np.array([r["rms_px"] for r in ok])
+    for name in ("pose_sd", "size_sd"):
+        sd = np.array([r.get(name, np.nan) for r in ok], float)
+        keep = np.isfinite(sd) & (sd > 0)
+        if keep.any():
+            z = e[keep] / sd[keep]
+            L.append(f"  ok prints' true pose error / {name}: median {np.median(z):.2f}, p90 {np.quantile(z, 0.9):.2f}, "
+                     f"above 3: {int(np.sum(z > 3))} of {int(keep.sum())} (if the spread held the error: a median near 1, "
+                     f"few above 3)")
+    return L
 
 
 def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 24, thumb: int = 256, cols: int = 6) -> None:
@@ -283,7 +311,7 @@ def random_labs(a) -> None:
         rows += rr
         print(lab_line(lab, rr) + f" (printing {lab['print_s']:.1f} s)", flush=True)
     cols = ["lab", "id", "pattern", "status", "reason", "rms_px", "iou", "iou_perfect", "truth_solid", "silently_wrong",
-            "score", "rotation_deg", "true_rotation_deg", "scale", "true_scale"]
+            "score", "rotation_deg", "true_rotation_deg", "scale", "true_scale", "pose_sd", "size_sd"]
     write_tsv(out / "prints.tsv", rows, cols)
     write_yaml(out / "labs.yaml", dict(seed=seed, labs={f"lab_{lab['index']:02d}": lab["overrides"] for lab in labs}))
     text = summarize(seed, labs, rows, cmd)
