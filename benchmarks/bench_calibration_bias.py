@@ -29,6 +29,10 @@ true prints of the trial masks, as (registered area - true area) / true edge len
 (px per edge px, positive: registered larger), and the share of true thin features
 (line width <= 3 px) lost by the registration.
 
+``--declare-dense`` writes the lab's fully cured polymer level over its background
+(1 / the microscope's background) into batch.yaml as ``dense_level``, as a lab that
+measured it would: the registration then thresholds at that level instead of its estimate.
+
 Writes ``bias.tsv`` (a row per lab), ``labs.yaml`` and ``summary.txt`` under ``--out``.
 """
 
@@ -80,7 +84,7 @@ def thin_lost(true: np.ndarray, reg: np.ndarray, width: float = 3.0) -> tuple[in
 def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.calibration import calibrate
     from unscatter.imaging import register_batch
-    from unscatter.io import read_print, read_tsv, write_png
+    from unscatter.io import read_print, read_tsv, read_yaml, write_png, write_yaml
     from unscatter.lab import Printer, load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks
@@ -106,6 +110,9 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     reuse = a.reuse and (d / "reg" / "qc.tsv").is_file()
     if not reuse:
         print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 5), progress=False)
+        if a.declare_dense:  # the lab's fully cured polymer over its background (the microscope's units)
+            meta = read_yaml(d / "batch" / "batch.yaml")
+            write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_level": round(1.0 / float(cfg["microscope"]["background"]), 4)})
     t_print = time.perf_counter() - t0
     t0 = time.perf_counter()
     qc = read_tsv(d / "reg" / "qc.tsv") if reuse else register_batch(d / "batch", d / "reg", skip_failed=True, progress=False, threads=1)
@@ -226,6 +233,8 @@ def main(argv=None) -> None:
                     help="leave out the calibration without the measurement stage")
     ap.add_argument("--reuse", action="store_true", help="reuse the prints and registrations a --keep run left in --out "
                     "(same --seed): only the calibrations run again")
+    ap.add_argument("--declare-dense", action="store_true", help="write the lab's dense level (fully cured polymer over "
+                    "its background) into batch.yaml as dense_level, as a lab that measured it would")
     ap.add_argument("--keep", action="store_true", help="keep each lab's batch, registration and calibrations")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "calibration_bias")
     a = ap.parse_args(argv)

@@ -71,6 +71,12 @@ def test_bad_stack_batches_are_clear_errors(batch, tmp_path):
     tifffile.imwrite(b / "images" / f"{first}.tif", st[:3], photometric="minisblack")  # too few slices for the depth
     with pytest.raises(InputError, match="cover"):
         register_stacks(b, tmp_path / "o2", progress=False)
+    yml = b / "batch.yaml"
+    text = yml.read_text()
+    yml.write_text(text + "dense_level: 3.0\n")  # a widefield image's level: not a stack's
+    with pytest.raises(InputError, match="dense_level is for single-layer"):
+        register_stacks(b, tmp_path / "o4", progress=False)
+    yml.write_text(text)
     (b / "images" / f"{first}.tif").unlink()
     r = CliRunner().invoke(main, ["register3d", str(b), str(tmp_path / "o3")])
     assert r.exit_code == 2 and "no z-stack" in r.output and not (tmp_path / "o3").exists()

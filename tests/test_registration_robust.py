@@ -185,6 +185,48 @@ def test_a_scale_prior_is_used_and_a_wrong_one_fails_loudly(tmp_path, trial_dir)
     assert not [k for k, (st, _, e) in errs.items() if st == "ok" and not e <= 1.5]
 
 
+def _edge_bias(reg_dir, truth_dir) -> list:
+    """Per ok print: (registered area - true area) / true edge length, px per edge px."""
+    from scipy import ndimage
+
+    from unscatter.io import read_print
+
+    out = []
+    for q in read_tsv(reg_dir / "qc.tsv"):
+        if q["status"] == "ok":
+            reg, true = read_print(reg_dir / f"{q['id']}.png"), read_print(truth_dir / "prints" / f"{q['id']}.png")
+            edge = float(np.count_nonzero(true & ~ndimage.binary_erosion(true)))
+            out.append((float(reg.sum()) - float(true.sum())) / max(edge, 1.0))
+    return out
+
+
+def test_a_declared_dense_level_measures_prints_that_never_cure_fully(tmp_path, trial_dir):
+    """Prints whose densest polymer stays below full cure (gel dose 0.35, threshold 0.62: at
+    most 0.8 of it) are measured too large when the fully cured level is estimated from the
+    batch's brightest polymer; with the level the lab measured (batch.yaml dense_level, here
+    the virtual microscope's 1 / background) they are measured where the density reaches the
+    print level. A dense_level that is not a number is an error naming it."""
+    from unscatter.lab import load_config
+
+    over = {"printer": {"cure": {"threshold": 0.62, "gel_dose": 0.35}}}
+    print_batch(trial_dir, tmp_path / "batch", overrides=over, seed=3, progress=False)
+    register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    estimated = _edge_bias(tmp_path / "reg", tmp_path / "batch.truth")
+    yml = tmp_path / "batch" / "batch.yaml"
+    text = yml.read_text()
+    level = 1.0 / float(load_config(overrides=over)["microscope"]["background"])
+    yml.write_text(text + f"dense_level: {level:.4f}\n")
+    rows = register_batch(tmp_path / "batch", tmp_path / "reg2", progress=False)
+    declared = _edge_bias(tmp_path / "reg2", tmp_path / "batch.truth")
+    assert float(rows[0]["dense_level"]) == pytest.approx(level, rel=1e-3)
+    assert len(estimated) >= 8 and len(declared) >= 8
+    assert np.median(estimated) > 0.8  # too large by about a px per edge px
+    assert abs(np.median(declared)) < 0.4
+    yml.write_text(text + "dense_level: bright\n")
+    with pytest.raises(InputError, match="dense_level"):
+        register_batch(tmp_path / "batch", tmp_path / "reg3", progress=False)
+
+
 # ------------------------------------------------------------- pose spread, batch range
 
 

@@ -304,6 +304,7 @@ BATCH_FIELDS = {
     "camera_offset_adu": (False, lambda path, key, v: _number(path, key, v, strict=False)),
     "image_pixel_size_um": (False, _number),  # the camera pixel at the sample
     "image_rotation_deg": (False, _rotation),
+    "dense_level": (False, _number),  # fully cured polymer's fluorescence over the background (registration)
     "layer_um": (False, _number),
     "z_step_um": (False, _number),
     "source_batch": (False, _text),  # registration: the batch the prints come from
@@ -324,6 +325,7 @@ class BatchMeta:
     camera_offset_adu: float = 0.0
     image_pixel_size_um: float | None = None
     image_rotation_deg: tuple[float, float] | None = None
+    dense_level: float | None = None
     layer_um: float | None = None
     z_step_um: float | None = None
     source_batch: str | None = None

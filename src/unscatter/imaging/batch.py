@@ -68,6 +68,7 @@ class Settings:
     scale_min_prints: int = 6  # ... with at least this many such prints
     min_scale_sd: float = 0.001  # ... the scale then known within at least this (log)
     scale_sigmas: float = 4.0  # ... and a print of such a batch this many of its sd off the batch's scale fails
+    declared_margin: float = 1.25  # polymer this many times brighter than a declared dense_level: a warning
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -253,6 +254,26 @@ def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
     mad = 1.4826 * np.median(np.abs(e - centre), axis=0)  # robust: a partial print among them does not set it
     aniso = float(max(s.min_size_sd, np.hypot(mad[1], mad[2]) / np.sqrt(2)))
     return tuple(float(v) for v in centre), (float(max(s.min_size_sd, mad[0])), aniso, aniso)
+
+
+def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s: Settings, source: Path) -> tuple[float, float]:
+    """The dense level and threshold from batch.yaml's ``dense_level`` (fully cured polymer
+    over the background, which the lab measured) in place of the batch's own estimate
+    (``flatfield.dense_level``: its brightest polymer, too low when no print cures fully).
+
+    The corrected images are in units of the background when divided by it; a batch that
+    falls back to subtraction is in those units too as long as no image's noise exceeds its
+    background (``correct_image``), and otherwise cannot use the declared level: an error,
+    not a threshold in the wrong units. Polymer brighter than the declared level by more
+    than ``declared_margin`` suggests a wrong value: a warning, with both numbers."""
+    if ff_mode != "divide" and any(k.noise >= 1.0 for k in corr.values()):  # then in units of their noise
+        raise InputError(source, f"dense_level {declared:g} is in units of the background, but the background of some images is "
+                                 "below their noise, so the registration cannot put it in their units; remove dense_level")
+    if np.isfinite(observed) and observed > s.declared_margin * declared:
+        log.warning("%s: the batch's brightest polymer reaches %.3g, %.0f %% above the declared dense_level %.3g: is the "
+                    "value for this stain and microscope?", source, observed, 100 * (observed / declared - 1), declared)
+    log.info("dense level %.3g declared in %s (the batch's brightest polymer: %.3g)", declared, source, observed)
+    return float(declared), s.level * float(declared)
 
 
 def implausible(corr: dict, s: Settings) -> dict:
@@ -465,6 +486,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # recognised before registration
     odd = implausible(corr, s)
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
+    if batch.meta.dense_level is not None:
+        dense, thr = declared_level(batch.meta.dense_level, dense, corr, ff_mode, s, batch_dir / "batch.yaml")
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
     low = {}  # too little above the threshold to register: empty or faint (decided with the template, step 4)

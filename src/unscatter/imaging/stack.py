@@ -61,6 +61,9 @@ def open_stack_batch(root) -> tuple:
     for field in ("layer_um", "z_step_um"):
         if getattr(meta, field) is None:
             raise InputError(root / "batch.yaml", f"a multi-layer batch needs {field}")
+    if meta.dense_level is not None:  # its units are a widefield image's; a stack's level comes from its dense polymer
+        raise InputError(root / "batch.yaml", "dense_level is for single-layer batches; a z-stack's dense level is measured "
+                                              "from its own dense polymer (remove dense_level)")
     mdir, idir = root / "masks", root / "images"
     for d in (mdir, idir):
         if not d.is_dir():
