@@ -121,7 +121,9 @@ DEFAULTS = dict(
     max_rounds=5,
     alpha=0.01,  # structure test: sign-flip p-value below this ...
     structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch ...
-    structure_gain=0.03,  # ... and a per-bin correction (predictive_gain) removes this share of the held-out error
+    structure_gain=0.015,  # ... and a per-bin correction (predictive_gain) removes this share of the held-out error
+    # (no-effect labs: 0 of 18 flagged at 1.5 % or at 3 %; outside effects that leave Eq. 1 0.01 or more below the
+    # lab's floor: 8 of 9 flagged at 1.5 %, 6 of 9 at 3 %; bench_diagnosis, 4 seeds)
     permutations=999,
     radii_um=(10.0, 30.0, 100.0, 300.0),
     band_um=30.0,  # binned diagnostics (but the signed distance) use pixels this close to a mask edge
@@ -882,7 +884,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                         f"per-print improvement > 0 and mean improvement >= {s['min_improvement']:.0%} of the current error"),
             structure_test=(f"sign-flip p < {s['alpha']}, excess systematic residual >= {s['structure_min']:.0%} of the "
                             f"mismatch rate, and a per-bin margin correction fitted on training prints removes >= "
-                            f"{s['structure_gain']:.0%} of the held-out error (see unscatter.diagnosis)"),
+                            f"{s['structure_gain']:.1%} of the held-out error (see unscatter.diagnosis)"),
             settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("device",)},
         ),
     )
@@ -956,7 +958,7 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
         lines.append(f"| {t['diagnostic']} | {t['excess']:.3f}{mark(t)} | {t['p_value']:.3f} | {100 * t['predictive_gain']:+.1f} % | "
                      f"{a['excess']:.3f}{mark(a)} | {a['p_value']:.3f} | {100 * a['predictive_gain']:+.1f} % |")
     lines += ["", f"Significant: sign-flip p < {s['alpha']}, excess >= {s['structure_min']:.2f} of the mismatch, and gain >= "
-              f"{s['structure_gain']:.0%}: the share of the held-out error that a per-bin cure-margin correction, fitted "
+              f"{s['structure_gain']:.1%}: the share of the held-out error that a per-bin cure-margin correction, fitted "
               "with each fold's model on its training prints, removes from its held-out prints.", ""]
     if unexplained:
         lines.append(f"**Unexplained residual**: structure remains that no candidate explains, shown by: {', '.join(unexplained)}.")
