@@ -59,13 +59,6 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.default_rng([seed, lab, what]).integers(2**31))
 
 
-def edge_length(p: np.ndarray) -> float:
-    from scipy import ndimage
-
-    p = np.asarray(p, bool)
-    return float((p & ~ndimage.binary_erosion(p, border_value=0)).sum())
-
-
 def thin_lost(true: np.ndarray, reg: np.ndarray, width: float = 3.0) -> tuple[int, int]:
     """Pixels of thin true features (local width <= ``width`` px: the medial axis where
     the distance to the background is at most width / 2) and how many of them the
@@ -88,7 +81,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.lab import Printer, load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks
-    from unscatter.metrics import iou
+    from unscatter.metrics import area_bias_px, iou
     from unscatter.model import default_params, simulate
 
     d = root / f"lab{i:02d}"
@@ -126,9 +119,8 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
         if r["status"] != "ok":
             continue
         reg, t = read_print(d / "reg" / f"{r['id']}.png"), truth[r["id"]]
-        e = edge_length(t)
-        if e > 0:
-            bias_px.append((float(reg.sum()) - float(t.sum())) / e)
+        if np.isfinite(b := area_bias_px(reg, t)):
+            bias_px.append(b)
         n, miss = thin_lost(t, reg)
         thin_n += n
         thin_miss += miss

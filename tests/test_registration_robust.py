@@ -187,17 +187,11 @@ def test_a_scale_prior_is_used_and_a_wrong_one_fails_loudly(tmp_path, trial_dir)
 
 def _edge_bias(reg_dir, truth_dir) -> list:
     """Per ok print: (registered area - true area) / true edge length, px per edge px."""
-    from scipy import ndimage
-
     from unscatter.io import read_print
+    from unscatter.metrics import area_bias_px
 
-    out = []
-    for q in read_tsv(reg_dir / "qc.tsv"):
-        if q["status"] == "ok":
-            reg, true = read_print(reg_dir / f"{q['id']}.png"), read_print(truth_dir / "prints" / f"{q['id']}.png")
-            edge = float(np.count_nonzero(true & ~ndimage.binary_erosion(true)))
-            out.append((float(reg.sum()) - float(true.sum())) / max(edge, 1.0))
-    return out
+    return [area_bias_px(read_print(reg_dir / f"{q['id']}.png"), read_print(truth_dir / "prints" / f"{q['id']}.png"))
+            for q in read_tsv(reg_dir / "qc.tsv") if q["status"] == "ok"]
 
 
 def test_a_declared_dense_level_measures_prints_that_never_cure_fully(tmp_path, trial_dir):

@@ -47,6 +47,13 @@ def edges(b: np.ndarray) -> np.ndarray:
     return b & ~ndimage.binary_erosion(b, border_value=0)
 
 
+def area_bias_px(printed: np.ndarray, target: np.ndarray) -> float:
+    """(printed area - target area) / the target's boundary pixels (``edges``): how far,
+    on average, the printed edge lies outside the target's (px; nan for an empty target)."""
+    n = int(np.count_nonzero(edges(target)))
+    return (float(np.count_nonzero(printed)) - float(np.count_nonzero(target))) / n if n else float("nan")
+
+
 def edge_length_px(b: np.ndarray) -> float:
     """Perimeter of a binary shape in pixels (scikit-image's 4-connected estimate)."""
     from skimage.measure import perimeter
