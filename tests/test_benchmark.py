@@ -72,6 +72,28 @@ def test_print_id_examples_and_bad_ids():
         print_id("star", "identical_fake")
 
 
+def test_pooled_iou_weighs_prints_by_area_not_empty_ones_by_one():
+    """A mask that prints nothing: a few stray predicted pixels make its per-print IoU 0
+    (and an empty prediction 1), which outweighs a whole print in a mean; pooled, they are
+    those pixels."""
+    big = np.zeros((64, 64), bool)
+    big[8:56, 8:56] = True  # 2304 px
+    near = big.copy()
+    near[8:56, 8] = False  # 48 px short
+    empty = np.zeros_like(big)
+    stray = empty.copy()
+    stray[0, :4] = True  # 4 px printed where nothing did
+    truth = [big, empty]
+    a, b = [near, stray], [big, empty]  # b: exact
+    assert metrics.pooled_iou([near], [big]) == pytest.approx(metrics.iou(near, big))
+    assert np.mean([metrics.iou(p, t) for p, t in zip(a, truth)]) == pytest.approx((2256 / 2304) / 2)
+    assert metrics.pooled_iou(a, truth) == pytest.approx(2256 / 2308)
+    assert metrics.pooled_iou(b, truth) == 1.0
+    assert metrics.pooled_iou([empty], [empty]) == 1.0
+    with pytest.raises(ValueError):
+        metrics.pooled_iou([near], truth)
+
+
 def test_identical_masks_scale_the_grey_level():
     d = np.zeros((8, 8), bool)
     d[2:5, 2:6] = True

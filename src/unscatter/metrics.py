@@ -33,6 +33,21 @@ def iou(printed: np.ndarray, target: np.ndarray) -> float:
     return np.count_nonzero(p & t) / union
 
 
+def pooled_iou(printed, target) -> float:
+    """IoU pooled over a set of prints: the summed intersections over the summed unions.
+
+    Unlike the mean of per-print IoU, a print counts by its area: a few stray pixels on a
+    mask that prints nothing are those pixels, not an IoU of 0 against an empty print (or
+    1 when the prediction is empty too) that outweighs whole prints. 1.0 when every print
+    and prediction is empty."""
+    inter = union = 0
+    for a, b in zip(printed, target, strict=True):
+        p, t = np.asarray(a, bool), np.asarray(b, bool)
+        inter += np.count_nonzero(p & t)
+        union += np.count_nonzero(p | t)
+    return inter / union if union else 1.0
+
+
 def pixel_error(printed: np.ndarray, target: np.ndarray) -> float:
     p, t = np.asarray(printed, bool), np.asarray(target, bool)
     n = np.count_nonzero(t)
