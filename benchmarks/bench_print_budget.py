@@ -17,6 +17,15 @@ its effects over wide ranges; a new seed each run, printed, ``--seed`` repeats i
    prints (mask coordinates, from the lab's truth) is the score, with the fitted sigma
    against the lab's own.
 
+With ``--effects`` (for instance ``none,heavy_tail,anisotropy,dose_nonlinearity,
+illumination_field,edge_offset,outside``) each lab has one effect beyond Eq. 1 (or none,
+or physics outside the library), drawn as the diagnosis benchmark draws them
+(``bench_diagnosis.random_effect_lab``, with this lab's random optics), every effect once
+per round. With ``--diagnose`` the residual diagnosis (quick settings) follows each
+calibration on the same prints: the effect it names against the lab's (right, wrong,
+missed, false alarm: ``bench_diagnosis.verdict``) and the selected model's held-out IoU,
+against n, for both kinds of trial masks.
+
 Writes ``budget.tsv`` (a row per lab, kind, n), ``labs.yaml``, ``summary.txt`` and
 ``budget.png`` (held-out IoU against n) under ``--out``.
 """
@@ -33,6 +42,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+import bench_diagnosis  # noqa: E402 (the one-effect labs and the verdicts of the diagnosis benchmark)
 
 
 def _substream(seed: int, lab: int, what: int) -> int:
@@ -69,6 +80,12 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
 
     d = root / f"lab{i:02d}"
     over = random_lab(np.random.default_rng(_substream(seed, i, 0)))
+    effect, magnitude = None, None
+    if a.effects:
+        effect = a.order[i]
+        # the same draw as random_lab's above: its optics, the printer with this one effect
+        fx, magnitude = bench_diagnosis.random_effect_lab(np.random.default_rng(_substream(seed, i, 0)), effect, a.strength)
+        over = dict(over, printer=fx["printer"])
     top = max(a.counts)
     t0 = time.perf_counter()
     design = design_masks(top, pool=a.pool, draws=a.draws, seed=_substream(seed, i, 1), progress=False, compare=False)
@@ -93,7 +110,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     held_masks = np.stack(held)
     cfg = load_config(overrides=over)
     lab_sigma_px = cfg["printer"]["kernel"]["sigma_um"] / float(cfg["batch"]["pixel_size_um"])
-    lab = dict(lab=i, describe=describe_lab(over), overrides=over, failed=sorted(failed),
+    lab = dict(lab=i, describe=describe_lab(over), effect=effect, magnitude=magnitude, overrides=over, failed=sorted(failed),
                design_s=round(t_design, 1), register_s=round(t_reg, 1), lab_sigma_px=lab_sigma_px)
     rows = []
     for kind in kinds:
@@ -116,11 +133,58 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
                     row.update(heldout_iou=float(np.nanmean(ious)), sigma_px=float(p.values["sigma_px"]),
                                sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1),
                                T=float(p.values["T"]), calibrate_s=round(time.perf_counter() - t2, 1))
+                    if a.diagnose:
+                        row.update(_diagnosis(sub, d / f"cal_{kind}_{n:02d}" / "params.yaml", d / f"diag_{kind}_{n:02d}",
+                                              effect, held_masks, [truth[mid] for mid in ids["held"]], _substream(seed, i, 7)))
             rows.append(row)
             print(f"  lab {i} {kind:8s} n={n:2d} used {used:2d}  IoU {row.get('heldout_iou', float('nan')):.4f}  "
-                  f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}",
-                  flush=True)
+                  f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}"
+                  + (f"  named {row['named']} ({row['verdict']}), selected IoU {row['heldout_iou_selected']:.4f}"
+                     if "named" in row else ""), flush=True)
     return lab, rows
+
+
+def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:
+    """The residual diagnosis (quick settings) on a calibration's prints: what it named, its
+    verdict against the lab's effect (None: the lab's effects are many, no verdict) and the
+    selected model's held-out IoU."""
+    from unscatter.diagnosis import diagnose
+    from unscatter.metrics import iou
+    from unscatter.model import load_params, simulate
+
+    t0 = time.perf_counter()
+    try:
+        r = diagnose([prints], params, out, quick=True, seed=seed, progress=False, figures=False, threads=1)
+    except Exception as exc:  # noqa: BLE001 (a diagnosis that cannot be made is a result)
+        return dict(named="error", verdict="error", diagnose_error=" ".join(str(exc).split())[:120])
+    sim = simulate(load_params(out / "model.yaml"), held_masks)
+    return dict(named=",".join(r["effects"]) or "-", unexplained=bool(r["unexplained_residual"]),
+                verdict=bench_diagnosis.verdict(effect, r["effects"], r["unexplained_residual"]) if effect else "-",
+                heldout_iou_selected=float(np.nanmean([iou(s, t) for s, t in zip(sim, truth)])),
+                diagnose_s=round(time.perf_counter() - t0, 1))
+
+
+def detection_lines(labs, rows, counts) -> list[str]:
+    """Verdicts of the diagnosis against n, per kind of trial masks."""
+    verdicts = ("right", "partial", "wrong", "missed", "false alarm", "error")
+    L = ["", "effect named (diagnosis, quick settings) against the number of prints: "
+         + ", ".join(verdicts) + "; selected model's held-out IoU, median",
+         f"{'n':>4} {'paper':>34} {'designed':>34}"]
+    for n in counts:
+        cells = []
+        for kind in ("paper", "designed"):
+            rr = [r for r in rows if r["kind"] == kind and r["n"] == n and "verdict" in r]
+            c = [sum(r["verdict"] == v for r in rr) for v in verdicts]
+            sel = [r["heldout_iou_selected"] for r in rr if "heldout_iou_selected" in r]
+            cells.append("/".join(map(str, c)) + (f"  IoU {np.median(sel):.4f}" if sel else ""))
+        L.append(f"{n:>4} {cells[0]:>34} {cells[1]:>34}")
+    L.append("per lab (effect: named at each n, paper | designed):")
+    for lab in labs:
+        parts = []
+        for kind in ("paper", "designed"):
+            parts.append(" ".join(f"{r['n']}:{r.get('named', '?')}" for r in rows if r["lab"] == lab["lab"] and r["kind"] == kind))
+        L.append(f"  lab {lab['lab']} {lab.get('effect')} ({lab.get('magnitude')}): {parts[0]} | {parts[1]}")
+    return L
 
 
 def summarize(seed, labs, rows, counts, cmd) -> str:
@@ -158,6 +222,8 @@ def summarize(seed, labs, rows, counts, cmd) -> str:
         p = [r["heldout_iou"] for r in rows if r["kind"] == "paper" and r["n"] == top and "heldout_iou" in r]
         if d and p:
             L.append(f"designed n={n} vs paper n={top}: median IoU {np.median(d):.4f} vs {np.median(p):.4f}")
+    if any("verdict" in r for r in rows):
+        L += detection_lines(labs, rows, counts)
     return "\n".join(L)
 
 
@@ -199,6 +265,10 @@ def main(argv=None) -> None:
     ap.add_argument("--heldout", type=int, default=16)
     ap.add_argument("--full", action="store_true", help="the workflow's calibration (GA 48 x 30)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "print_budget")
+    ap.add_argument("--effects", default=None, help="labs with one effect each, drawn from these (bench_diagnosis: "
+                    f"{','.join(bench_diagnosis.RANDOM_EFFECTS)}); default: random_lab's labs, many effects at once")
+    ap.add_argument("--strength", choices=("wide", "strong"), default="wide", help="with --effects: their magnitudes")
+    ap.add_argument("--diagnose", action="store_true", help="the residual diagnosis after each calibration")
     a = ap.parse_args(argv)
     a.counts = sorted(int(x) for x in a.counts.split(","))
     logging.basicConfig(level=logging.WARNING)
@@ -206,6 +276,15 @@ def main(argv=None) -> None:
 
     torch.set_num_threads(1)
     seed = a.seed if a.seed is not None else int(np.random.default_rng().integers(2**31))
+    if a.effects:
+        effects = a.effects.split(",")
+        unknown = [e for e in effects if e not in bench_diagnosis.RANDOM_EFFECTS and e not in bench_diagnosis.OUTSIDE]
+        if unknown:
+            ap.error(f"--effects: unknown {unknown}")
+        rng = np.random.default_rng([seed, 99])
+        a.order = []
+        while len(a.order) < a.labs:  # every effect once per round, shuffled
+            a.order += [effects[j] for j in rng.permutation(len(effects))]
     cmd = " ".join(["python benchmarks/bench_print_budget.py", *(argv if argv is not None else sys.argv[1:])])
     print(f"seed {seed} (repeat with --seed {seed})", flush=True)
     if a.out.exists():

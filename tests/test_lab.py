@@ -167,6 +167,20 @@ def test_random_labs_stay_in_their_ranges():
     assert seen_formats == {"tif16", "png8"} and seen_effects == {"haze", "staining", "tilt"}
 
 
+def test_describe_lab_names_the_effects_a_lab_has_and_lacks():
+    """A lab with its tail switched off and physics outside the model library (the
+    diagnosis benchmark's one-effect labs) is described, not a crash."""
+    from unscatter.lab.random import describe_lab, random_lab
+
+    over = random_lab(np.random.default_rng(3))
+    assert "tail " in describe_lab(over) and "no tail" not in describe_lab(over)
+    k = over["printer"]["kernel"]
+    over["printer"]["kernel"] = dict(k, heavy_tail=None)
+    over["printer"].update(oxygen_inhibition=dict(strength=0.2, length_um=15.0), kernel_dose_growth=0.5)
+    line = describe_lab(over)
+    assert "no tail" in line and "O2 0.20/15 um" in line and "kernel x1.50 at full grey" in line
+
+
 def test_print_batch_takes_a_random_lab(tmp_path):
     from unscatter import masks
     from unscatter.io import read_image_raw, write_png

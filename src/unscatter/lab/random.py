@@ -179,10 +179,17 @@ def describe_lab(over: dict) -> str:
     if m.get("staining"):
         parts.append(f"stain {m['staining']['variation']:.2f}/{m['staining']['length_px']:.0f}px")
     k, c = p["kernel"], p["cure"]
-    parts += [f"| sigma {k['sigma_um']:.1f} um", f"tail {k['heavy_tail']['fraction']:.2f}/{k['heavy_tail']['length_um']:.0f} um",
+    ht = k.get("heavy_tail")
+    parts += [f"| sigma {k['sigma_um']:.1f} um", f"tail {ht['fraction']:.2f}/{ht['length_um']:.0f} um" if ht else "no tail",
               f"aniso {k['anisotropy']['ratio']:.2f}", f"T {c['threshold']:.2f} gel {c['gel_dose']:.2f}",
               f"gamma {p['dose_gamma']:.2f}", f"edge {p['edge_offset_um']:+.1f} um", f"noise {p['cells']['dose_noise']:.3f}"]
     hs = p["illumination"].get("hotspot")
     if hs:
         parts.append(f"hotspot {hs['amplitude']:.2f}")
+    if p["illumination"].get("quartic"):
+        parts.append(f"quartic {p['illumination']['quartic']:+.3f}")
+    if p.get("oxygen_inhibition"):
+        parts.append(f"O2 {p['oxygen_inhibition']['strength']:.2f}/{p['oxygen_inhibition']['length_um']:.0f} um")
+    if p.get("kernel_dose_growth"):
+        parts.append(f"kernel x{1 + p['kernel_dose_growth']:.2f} at full grey")
     return " ".join(parts)
