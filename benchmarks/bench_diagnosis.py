@@ -18,8 +18,8 @@ noisy prints: IoU of Eq. 1, of the selected model and of the floor (the per-pixe
 majority of 11 other prints of the lab: the best its own printer predicts one print),
 as the mean of per-print IoU and pooled over the lab's held-out prints
 (``metrics.pooled_iou``: a mask the lab prints nothing of weighs its stray pixels, not
-an IoU of 0 or 1). Effect sizes are drawn log-uniformly from barely detectable to strong (``--strength
-strong``: the upper part only); "outside" labs hold one or two of OUTSIDE_PHYSICS (a
+an IoU of 0 or 1). Effect sizes are drawn log-uniformly from barely detectable to
+strong (``--strength strong``: the upper part only); "outside" labs hold one or two of OUTSIDE_PHYSICS (a
 lamp hot spot, oxygen inhibition at edges, a kernel that widens with grey level). The
 summary adds the power study's tables: the confusion matrix, detection against the
 effect's size and against what Eq. 1 leaves to explain, false alarms and outside

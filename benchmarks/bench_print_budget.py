@@ -75,7 +75,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     from unscatter.lab import load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks
-    from unscatter.metrics import iou
+    from unscatter.metrics import iou, pooled_iou
     from unscatter.model import simulate
 
     d = root / f"lab{i:02d}"
@@ -130,7 +130,8 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
                 else:
                     sim = simulate(p, held_masks)
                     ious = [iou(s, truth[mid]) for s, mid in zip(sim, ids["held"])]
-                    row.update(heldout_iou=float(np.nanmean(ious)), sigma_px=float(p.values["sigma_px"]),
+                    row.update(heldout_iou=float(np.nanmean(ious)),
+                               heldout_iou_pooled=pooled_iou(sim, [truth[mid] for mid in ids["held"]]), sigma_px=float(p.values["sigma_px"]),
                                sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1),
                                T=float(p.values["T"]), calibrate_s=round(time.perf_counter() - t2, 1))
                     if a.diagnose:
@@ -149,7 +150,7 @@ def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth:
     verdict against the lab's effect (None: the lab's effects are many, no verdict) and the
     selected model's held-out IoU."""
     from unscatter.diagnosis import diagnose
-    from unscatter.metrics import iou
+    from unscatter.metrics import iou, pooled_iou
     from unscatter.model import load_params, simulate
 
     t0 = time.perf_counter()
@@ -161,7 +162,13 @@ def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth:
     return dict(named=",".join(r["effects"]) or "-", unexplained=bool(r["unexplained_residual"]),
                 verdict=bench_diagnosis.verdict(effect, r["effects"], r["unexplained_residual"]) if effect else "-",
                 heldout_iou_selected=float(np.nanmean([iou(s, t) for s, t in zip(sim, truth)])),
+                heldout_iou_selected_pooled=pooled_iou(sim, truth),
                 diagnose_s=round(time.perf_counter() - t0, 1))
+
+
+def _median(rows, kind, n, key) -> str:
+    v = [r[key] for r in rows if r["kind"] == kind and r["n"] == n and key in r]
+    return f"{np.median(v):.4f}" if v else "-"
 
 
 def detection_lines(labs, rows, counts) -> list[str]:
@@ -177,7 +184,9 @@ def detection_lines(labs, rows, counts) -> list[str]:
             c = [sum(r["verdict"] == v for r in rr) for v in verdicts]
             sel = [r["heldout_iou_selected"] for r in rr if "heldout_iou_selected" in r]
             cells.append("/".join(map(str, c)) + (f"  IoU {np.median(sel):.4f}" if sel else ""))
-        L.append(f"{n:>4} {cells[0]:>34} {cells[1]:>34}")
+        L.append(f"{n:>4} {cells[0]:>34} {cells[1]:>34}   pooled: paper "
+                 f"{_median(rows, 'paper', n, 'heldout_iou_selected_pooled')}, designed "
+                 f"{_median(rows, 'designed', n, 'heldout_iou_selected_pooled')}")
     L.append("per lab (effect: named at each n, paper | designed):")
     for lab in labs:
         parts = []
@@ -205,6 +214,10 @@ def summarize(seed, labs, rows, counts, cmd) -> str:
             v = [abs(r["sigma_rel_err"]) for r in rows if r["kind"] == kind and r["n"] == n and "sigma_rel_err" in r]
             errs.append(f"{np.median(v):.3f}" if v else "-")
         L.append(f"{n:>4} {cells[0]:>26} {cells[1]:>26} {errs[0]:>18} {errs[1]:>9}")
+    if any("heldout_iou_pooled" in r for r in rows):  # held-out IoU pooled over masks (metrics.pooled_iou)
+        L.append("pooled over the held-out masks (median over labs): " + "; ".join(
+            f"n={n} paper {_median(rows, 'paper', n, 'heldout_iou_pooled')}, designed "
+            f"{_median(rows, 'designed', n, 'heldout_iou_pooled')}" for n in counts))
     wins = []
     for n in counts:
         for lab in labs:
