@@ -181,6 +181,7 @@ RANDOM_EFFECTS = ("none", "heavy_tail", "anisotropy", "dose_nonlinearity", "illu
 # physics of the lab that the model library lacks: an "outside" lab has one or two of them
 OUTSIDE_PHYSICS = ("hotspot", "oxygen_inhibition", "kernel_dose_growth")
 OUTSIDE = {"outside", *OUTSIDE_PHYSICS}
+VERDICTS = ("right", "partial", "wrong", "missed", "false alarm")  # of one lab (``verdict``)
 
 
 def random_effect_lab(rng: np.random.Generator, effect: str, strength: str = "wide") -> tuple[dict, str]:
@@ -446,8 +447,7 @@ def power(rows: list) -> list[str]:
 
 
 def summary(rows: list) -> str:
-    verdicts = ("right", "partial", "wrong", "missed", "false alarm")
-    counts = {v: sum(r["verdict"] == v for r in rows) for v in verdicts}
+    counts = {v: sum(r["verdict"] == v for r in rows) for v in VERDICTS}
     gap_sel = [r["iou_floor"] - r["iou_selected"] for r in rows]
     gap_eq1 = [r["iou_floor"] - r["iou_eq1"] for r in rows]
     pgap = [r["patterns_iou_floor"] - r["patterns_iou_selected"] for r in rows]

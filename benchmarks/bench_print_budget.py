@@ -75,7 +75,6 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     from unscatter.lab import load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks
-    from unscatter.metrics import iou, pooled_iou
     from unscatter.model import simulate
 
     d = root / f"lab{i:02d}"
@@ -106,7 +105,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     qc = register_batch(d / "batch", d / "reg", skip_failed=True, progress=False)
     t_reg = time.perf_counter() - t1
     failed = {r["id"] for r in qc if r["status"] == "failed"}
-    truth = {mid: read_print(d / "batch.truth" / "prints" / f"{mid}.png") for mid in ids["held"]}
+    truth = [read_print(d / "batch.truth" / "prints" / f"{mid}.png") for mid in ids["held"]]
     held_masks = np.stack(held)
     cfg = load_config(overrides=over)
     lab_sigma_px = cfg["printer"]["kernel"]["sigma_um"] / float(cfg["batch"]["pixel_size_um"])
@@ -128,15 +127,13 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
                 except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
                     row.update(error=" ".join(str(exc).split())[:120])
                 else:
-                    sim = simulate(p, held_masks)
-                    ious = [iou(s, truth[mid]) for s, mid in zip(sim, ids["held"])]
-                    row.update(heldout_iou=float(np.nanmean(ious)),
-                               heldout_iou_pooled=pooled_iou(sim, [truth[mid] for mid in ids["held"]]), sigma_px=float(p.values["sigma_px"]),
+                    mean, pooled = held_out_iou(simulate(p, held_masks), truth)
+                    row.update(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
                                sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1),
                                T=float(p.values["T"]), calibrate_s=round(time.perf_counter() - t2, 1))
                     if a.diagnose:
                         row.update(_diagnosis(sub, d / f"cal_{kind}_{n:02d}" / "params.yaml", d / f"diag_{kind}_{n:02d}",
-                                              effect, held_masks, [truth[mid] for mid in ids["held"]], _substream(seed, i, 7)))
+                                              effect, held_masks, truth, _substream(seed, i, 7)))
             rows.append(row)
             print(f"  lab {i} {kind:8s} n={n:2d} used {used:2d}  IoU {row.get('heldout_iou', float('nan')):.4f}  "
                   f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}"
@@ -145,12 +142,19 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     return lab, rows
 
 
+def held_out_iou(sim, truth: list) -> tuple[float, float]:
+    """A model's held-out prints against the lab's: the mean of per-mask IoU and the IoU
+    pooled over the masks (``metrics.pooled_iou``)."""
+    from unscatter.metrics import iou, pooled_iou
+
+    return float(np.nanmean([iou(s, t) for s, t in zip(sim, truth, strict=True)])), pooled_iou(sim, truth)
+
+
 def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:
     """The residual diagnosis (quick settings) on a calibration's prints: what it named, its
     verdict against the lab's effect (None: the lab's effects are many, no verdict) and the
     selected model's held-out IoU."""
     from unscatter.diagnosis import diagnose
-    from unscatter.metrics import iou, pooled_iou
     from unscatter.model import load_params, simulate
 
     t0 = time.perf_counter()
@@ -158,11 +162,10 @@ def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth:
         r = diagnose([prints], params, out, quick=True, seed=seed, progress=False, figures=False, threads=1)
     except Exception as exc:  # noqa: BLE001 (a diagnosis that cannot be made is a result)
         return dict(named="error", verdict="error", diagnose_error=" ".join(str(exc).split())[:120])
-    sim = simulate(load_params(out / "model.yaml"), held_masks)
+    mean, pooled = held_out_iou(simulate(load_params(out / "model.yaml"), held_masks), truth)
     return dict(named=",".join(r["effects"]) or "-", unexplained=bool(r["unexplained_residual"]),
                 verdict=bench_diagnosis.verdict(effect, r["effects"], r["unexplained_residual"]) if effect else "-",
-                heldout_iou_selected=float(np.nanmean([iou(s, t) for s, t in zip(sim, truth)])),
-                heldout_iou_selected_pooled=pooled_iou(sim, truth),
+                heldout_iou_selected=mean, heldout_iou_selected_pooled=pooled,
                 diagnose_s=round(time.perf_counter() - t0, 1))
 
 
@@ -173,7 +176,7 @@ def _median(rows, kind, n, key) -> str:
 
 def detection_lines(labs, rows, counts) -> list[str]:
     """Verdicts of the diagnosis against n, per kind of trial masks."""
-    verdicts = ("right", "partial", "wrong", "missed", "false alarm", "error")
+    verdicts = (*bench_diagnosis.VERDICTS, "error")
     L = ["", "effect named (diagnosis, quick settings) against the number of prints: "
          + ", ".join(verdicts) + "; selected model's held-out IoU, median",
          f"{'n':>4} {'paper':>34} {'designed':>34}"]
