@@ -63,7 +63,6 @@ def thin_lost(true: np.ndarray, reg: np.ndarray, width: float = 3.0) -> tuple[in
     """Pixels of thin true features (local width <= ``width`` px: the medial axis where
     the distance to the background is at most width / 2) and how many of them the
     registered print misses."""
-    from scipy import ndimage
     from skimage.morphology import medial_axis
 
     t = np.asarray(true, bool)
@@ -240,10 +239,12 @@ def main(argv=None) -> None:
     seed = a.seed if a.seed is not None else int(np.random.default_rng().integers(2**31))
     cmd = " ".join(["python benchmarks/bench_calibration_bias.py", *(argv if argv is not None else sys.argv[1:])])
     print(f"seed {seed} (repeat with --seed {seed})", flush=True)
-    if a.out.exists() and not a.reuse:
-        shutil.rmtree(a.out)
-    a.out.mkdir(parents=True, exist_ok=True)
-    from unscatter.io import write_tsv, write_yaml
+    from unscatter.io import InputError, benchmark_output_dir, write_tsv, write_yaml
+
+    try:
+        a.out = benchmark_output_dir(a.out, script="benchmarks/bench_calibration_bias.py", keep=a.reuse)
+    except InputError as exc:
+        ap.error(str(exc))
 
     labs, rows = [], []
     for i in range(a.labs):

@@ -26,6 +26,14 @@ calibration on the same prints: the effect it names against the lab's (right, wr
 missed, false alarm: ``bench_diagnosis.verdict``) and the selected model's held-out IoU,
 against n, for both kinds of trial masks.
 
+With ``--sequential`` (needs ``--diagnose``) a third kind, ``sequential``, is measured:
+the first count's designed prints, then at each next count the masks that
+``design.design_masks`` proposes from the last diagnosis (its fit and spread as the
+prior, the prints made so far adding their information, the effects it could not decide
+on weighted; ``unscatter masks design --model DIAG --prints REG``), printed on the same
+lab as a new batch (new noise, new poses), registered, and calibrated and diagnosed with
+the earlier prints.
+
 Writes ``budget.tsv`` (a row per lab, kind, n), ``labs.yaml``, ``summary.txt`` and
 ``budget.png`` (held-out IoU against n) under ``--out``.
 """
@@ -119,11 +127,9 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
             row = dict(lab=i, kind=kind, n=n, prints_used=used)
             if used:
                 t2 = time.perf_counter()
-                fit = dict(population=48, generations=30, folds=0, bootstrap=0) if a.full else \
-                    dict(population=24, generations=10, folds=0, bootstrap=0)
                 try:
                     p = calibrate(sub, d / f"cal_{kind}_{n:02d}", seed=_substream(seed, i, 6), progress=False,
-                                  residual_maps=False, figure=False, threads=1, **fit)
+                                  residual_maps=False, figure=False, threads=1, **_fit_settings(a))
                 except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
                     row.update(error=" ".join(str(exc).split())[:120])
                 else:
@@ -134,12 +140,86 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
                     if a.diagnose:
                         row.update(_diagnosis(sub, d / f"cal_{kind}_{n:02d}" / "params.yaml", d / f"diag_{kind}_{n:02d}",
                                               effect, held_masks, truth, _substream(seed, i, 7)))
-            rows.append(row)
-            print(f"  lab {i} {kind:8s} n={n:2d} used {used:2d}  IoU {row.get('heldout_iou', float('nan')):.4f}  "
-                  f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}"
-                  + (f"  named {row['named']} ({row['verdict']}), selected IoU {row['heldout_iou_selected']:.4f}"
-                     if "named" in row else ""), flush=True)
+            rows.append(_report(i, row, lab_sigma_px))
+    if a.sequential:
+        rows += _sequential(i, seed, a, d, over, ids["designed"][:a.counts[0]], effect, held_masks, truth, lab_sigma_px)
     return lab, rows
+
+
+def _report(i: int, row: dict, lab_sigma_px: float) -> dict:
+    print(f"  lab {i} {row['kind']:10s} n={row['n']:2d} used {row['prints_used']:2d}  IoU {row.get('heldout_iou', float('nan')):.4f}  "
+          f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}"
+          + (f"  named {row['named']} ({row['verdict']}), selected IoU {row['heldout_iou_selected']:.4f}"
+             if "heldout_iou_selected" in row else ""), flush=True)
+    return row
+
+
+def _sequential(i: int, seed: int, a, d: Path, over: dict, first: list, effect, held_masks, truth: list,
+                lab_sigma_px: float) -> list[dict]:
+    """The sequential kind: the first count's designed prints (already diagnosed as
+    ``diag_designed_NN``), then at each next count the masks the last diagnosis proposes,
+    printed on the lab as a new batch, registered, and calibrated and diagnosed with the
+    prints so far."""
+    from unscatter.calibration import calibrate
+    from unscatter.design import design_masks
+    from unscatter.imaging import register_batch
+    from unscatter.io import write_png
+    from unscatter.lab import print_batch
+    from unscatter.model import simulate
+
+    n0 = a.counts[0]
+    folders = [d / f"designed_{n0:02d}"]
+    diag, cal = d / f"diag_designed_{n0:02d}", d / f"cal_designed_{n0:02d}"
+    have, rows = n0, []
+    for step, n in enumerate(a.counts[1:], 1):
+        row = dict(lab=i, kind="sequential", n=n)
+        # from the diagnosis; where it could not be made (too few prints), from the calibration
+        model = diag if (diag / "model.yaml").is_file() else cal / "params.yaml"
+        if not Path(model).is_file() and not (Path(model) / "model.yaml").is_file():
+            rows.append(_report(i, dict(row, prints_used=0, error="no calibration to design from"), lab_sigma_px))
+            break
+        row["designed_from"] = "diagnosis" if model == diag else "calibration"
+        t0 = time.perf_counter()
+        new = design_masks(n - have, model=model, prints=folders, pool=a.pool, draws=a.draws,
+                           seed=_substream(seed, i, 10 + step), progress=False, compare=False)["masks"]
+        t_design = time.perf_counter() - t0
+        step_dir = d / f"sequential_{n:02d}"
+        for j, m in enumerate(new.values()):
+            write_png(step_dir / "masks" / f"seq{step}_{j:03d}.png", m)
+        print_batch(step_dir / "masks", step_dir / "batch", overrides=over, seed=_substream(seed, i, 20 + step), progress=False)
+        qc = register_batch(step_dir / "batch", step_dir / "reg", skip_failed=True, progress=False)
+        folders.append(step_dir / "reg")
+        have = n
+        used = _usable(folders)
+        row.update(prints_used=used, failed_new=sum(r["status"] == "failed" for r in qc), design_s=round(t_design, 1))
+        t2 = time.perf_counter()
+        cal = d / f"cal_sequential_{n:02d}"
+        try:
+            p = calibrate(folders, cal, seed=_substream(seed, i, 6), progress=False, residual_maps=False, figure=False,
+                          threads=1, **_fit_settings(a))
+        except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
+            rows.append(_report(i, dict(row, error=" ".join(str(exc).split())[:120]), lab_sigma_px))
+            break
+        mean, pooled = held_out_iou(simulate(p, held_masks), truth)
+        row.update(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
+                   sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1), T=float(p.values["T"]),
+                   calibrate_s=round(time.perf_counter() - t2, 1))
+        diag = d / f"diag_sequential_{n:02d}"
+        row.update(_diagnosis(folders, cal / "params.yaml", diag, effect, held_masks, truth, _substream(seed, i, 7)))
+        rows.append(_report(i, row, lab_sigma_px))
+    return rows
+
+
+def _fit_settings(a) -> dict:
+    return dict(population=48, generations=30, folds=0, bootstrap=0) if a.full else \
+        dict(population=24, generations=10, folds=0, bootstrap=0)
+
+
+def _usable(folders: list) -> int:
+    """Prints not failed in registration folders."""
+    from unscatter.io import read_tsv
+
+    return sum(r["status"] != "failed" for f in folders for r in read_tsv(Path(f) / "qc.tsv"))
 
 
 def held_out_iou(sim, truth: list) -> tuple[float, float]:
@@ -150,7 +230,7 @@ def held_out_iou(sim, truth: list) -> tuple[float, float]:
     return float(np.nanmean([iou(s, t) for s, t in zip(sim, truth, strict=True)])), pooled_iou(sim, truth)
 
 
-def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:
+def _diagnosis(prints, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:
     """The residual diagnosis (quick settings) on a calibration's prints: what it named, its
     verdict against the lab's effect (None: the lab's effects are many, no verdict) and the
     selected model's held-out IoU."""
@@ -159,7 +239,7 @@ def _diagnosis(prints: Path, params: Path, out: Path, effect, held_masks, truth:
 
     t0 = time.perf_counter()
     try:
-        r = diagnose([prints], params, out, quick=True, seed=seed, progress=False, figures=False, threads=1)
+        r = diagnose([prints] if isinstance(prints, Path) else prints, params, out, quick=True, seed=seed, progress=False, figures=False, threads=1)
     except Exception as exc:  # noqa: BLE001 (a diagnosis that cannot be made is a result)
         return dict(named="error", verdict="error", diagnose_error=" ".join(str(exc).split())[:120])
     mean, pooled = held_out_iou(simulate(load_params(out / "model.yaml"), held_masks), truth)
@@ -174,73 +254,76 @@ def _median(rows, kind, n, key) -> str:
     return f"{np.median(v):.4f}" if v else "-"
 
 
+def _kinds(rows) -> list[str]:
+    return [k for k in ("paper", "designed", "sequential") if any(r["kind"] == k for r in rows)]
+
+
 def detection_lines(labs, rows, counts) -> list[str]:
     """Verdicts of the diagnosis against n, per kind of trial masks."""
     verdicts = (*bench_diagnosis.VERDICTS, "error")
+    kinds = _kinds(rows)
     L = ["", "effect named (diagnosis, quick settings) against the number of prints: "
-         + ", ".join(verdicts) + "; selected model's held-out IoU, median",
-         f"{'n':>4} {'paper':>34} {'designed':>34}"]
+         + "/".join(verdicts) + "; selected model's held-out IoU, median (pooled)",
+         f"{'n':>4} " + " ".join(f"{k:>36}" for k in kinds)]
     for n in counts:
         cells = []
-        for kind in ("paper", "designed"):
+        for kind in kinds:
             rr = [r for r in rows if r["kind"] == kind and r["n"] == n and "verdict" in r]
             c = [sum(r["verdict"] == v for r in rr) for v in verdicts]
-            sel = [r["heldout_iou_selected"] for r in rr if "heldout_iou_selected" in r]
-            cells.append("/".join(map(str, c)) + (f"  IoU {np.median(sel):.4f}" if sel else ""))
-        L.append(f"{n:>4} {cells[0]:>34} {cells[1]:>34}   pooled: paper "
-                 f"{_median(rows, 'paper', n, 'heldout_iou_selected_pooled')}, designed "
-                 f"{_median(rows, 'designed', n, 'heldout_iou_selected_pooled')}")
-    L.append("per lab (effect: named at each n, paper | designed):")
+            cells.append(("/".join(map(str, c)) + f"  {_median(rows, kind, n, 'heldout_iou_selected')} "
+                          f"({_median(rows, kind, n, 'heldout_iou_selected_pooled')})") if rr else "-")
+        L.append(f"{n:>4} " + " ".join(f"{c:>36}" for c in cells))
+    L.append("per lab (effect: named at each n, " + " | ".join(kinds) + "):")
     for lab in labs:
-        parts = []
-        for kind in ("paper", "designed"):
-            parts.append(" ".join(f"{r['n']}:{r.get('named', '?')}" for r in rows if r["lab"] == lab["lab"] and r["kind"] == kind))
-        L.append(f"  lab {lab['lab']} {lab.get('effect')} ({lab.get('magnitude')}): {parts[0]} | {parts[1]}")
+        parts = [" ".join(f"{r['n']}:{r.get('named', '?')}" for r in rows if r["lab"] == lab["lab"] and r["kind"] == kind)
+                 for kind in kinds]
+        L.append(f"  lab {lab['lab']} {lab.get('effect')} ({lab.get('magnitude')}): " + " | ".join(parts))
     return L
 
 
 def summarize(seed, labs, rows, counts, cmd) -> str:
+    kinds = _kinds(rows)
     L = [f"print budget: {cmd}", f"seed {seed}, {len(labs)} labs", ""]
     for lab in labs:
         L.append(f"lab {lab['lab']}: {lab['describe']}")
         L.append(f"   registration failed {len(lab['failed'])}: {', '.join(lab['failed']) or '-'}; "
                  f"design {lab['design_s']} s, registration {lab['register_s']} s")
-    L += ["", "held-out IoU against the lab's true prints (median over labs [min, max]); |sigma error| median",
-          f"{'n':>4} {'paper':>26} {'designed':>26} {'|sigma err| paper':>18} {'designed':>9}"]
+    L += ["", "Eq. 1's held-out IoU against the lab's true prints: median over labs of the IoU pooled over the "
+          "held-out masks (metrics.pooled_iou) [min, max], the median of the per-mask mean, |sigma error| median",
+          f"{'n':>4} " + " ".join(f"{k + ' pooled':>26} {'mean':>7} {'|sig err|':>9}" for k in kinds)]
     for n in counts:
         cells = []
-        for kind in ("paper", "designed"):
-            v = [r["heldout_iou"] for r in rows if r["kind"] == kind and r["n"] == n and "heldout_iou" in r]
-            cells.append(f"{np.median(v):.4f} [{min(v):.4f}, {max(v):.4f}]" if v else "-")
-        errs = []
-        for kind in ("paper", "designed"):
-            v = [abs(r["sigma_rel_err"]) for r in rows if r["kind"] == kind and r["n"] == n and "sigma_rel_err" in r]
-            errs.append(f"{np.median(v):.3f}" if v else "-")
-        L.append(f"{n:>4} {cells[0]:>26} {cells[1]:>26} {errs[0]:>18} {errs[1]:>9}")
-    if any("heldout_iou_pooled" in r for r in rows):  # held-out IoU pooled over masks (metrics.pooled_iou)
-        L.append("pooled over the held-out masks (median over labs): " + "; ".join(
-            f"n={n} paper {_median(rows, 'paper', n, 'heldout_iou_pooled')}, designed "
-            f"{_median(rows, 'designed', n, 'heldout_iou_pooled')}" for n in counts))
-    wins = []
-    for n in counts:
-        for lab in labs:
-            p = [r for r in rows if r["lab"] == lab["lab"] and r["n"] == n and "heldout_iou" in r]
-            by = {r["kind"]: r["heldout_iou"] for r in p}
-            if len(by) == 2:
-                wins.append((n, by["designed"] > by["paper"]))
+        for kind in kinds:
+            v = [r["heldout_iou_pooled"] for r in rows if r["kind"] == kind and r["n"] == n and "heldout_iou_pooled" in r]
+            e = [abs(r["sigma_rel_err"]) for r in rows if r["kind"] == kind and r["n"] == n and "sigma_rel_err" in r]
+            cells.append(f"{np.median(v):.4f} [{min(v):.4f}, {max(v):.4f}]".rjust(26) if v else "-".rjust(26))
+            cells.append(f"{_median(rows, kind, n, 'heldout_iou'):>7} {(f'{np.median(e):.3f}' if e else '-'):>9}")
+        L.append(f"{n:>4} " + " ".join(cells))
     L.append("")
-    for n in counts:
-        w = [x for m, x in wins if m == n]
-        L.append(f"n={n}: designed better than paper in {sum(w)} of {len(w)} labs")
+    for other in kinds[1:]:
+        for n in counts:
+            w = []
+            for lab in labs:
+                by = {r["kind"]: r["heldout_iou_pooled"] for r in rows
+                      if r["lab"] == lab["lab"] and r["n"] == n and "heldout_iou_pooled" in r}
+                if "paper" in by and other in by:
+                    w.append(by[other] > by["paper"])
+            if w:
+                L.append(f"n={n}: {other} better than paper (pooled) in {sum(w)} of {len(w)} labs")
     top = max(counts)
-    for n in counts:
-        d = [r["heldout_iou"] for r in rows if r["kind"] == "designed" and r["n"] == n and "heldout_iou" in r]
-        p = [r["heldout_iou"] for r in rows if r["kind"] == "paper" and r["n"] == top and "heldout_iou" in r]
-        if d and p:
-            L.append(f"designed n={n} vs paper n={top}: median IoU {np.median(d):.4f} vs {np.median(p):.4f}")
+    for other in kinds[1:]:
+        for n in [m for m in counts[:-1] if any(r["kind"] == other and r["n"] == m for r in rows)]:
+            L.append(f"{other} n={n} vs paper n={top} pooled: {_median(rows, other, n, 'heldout_iou_pooled')} "
+                     f"vs {_median(rows, 'paper', top, 'heldout_iou_pooled')}; right named: "
+                     f"{_right(rows, other, n)} vs {_right(rows, 'paper', top)}")
     if any("verdict" in r for r in rows):
         L += detection_lines(labs, rows, counts)
     return "\n".join(L)
+
+
+def _right(rows, kind, n) -> str:
+    rr = [r for r in rows if r["kind"] == kind and r["n"] == n and "verdict" in r]
+    return f"{sum(r['verdict'] == 'right' for r in rr)} of {len(rr)}" if rr else "-"
 
 
 def figure(rows, counts, path) -> None:
@@ -250,21 +333,23 @@ def figure(rows, counts, path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
-    for kind, c in (("paper", "tab:gray"), ("designed", "tab:blue")):
-        labs = sorted({r["lab"] for r in rows})
-        for lab in labs:
-            pts = [(r["n"], r["heldout_iou"]) for r in rows if r["kind"] == kind and r["lab"] == lab and "heldout_iou" in r]
+    for kind, c in (("paper", "tab:gray"), ("designed", "tab:blue"), ("sequential", "tab:orange")):
+        for lab in sorted({r["lab"] for r in rows}):
+            pts = [(r["n"], r["heldout_iou_pooled"]) for r in rows
+                   if r["kind"] == kind and r["lab"] == lab and "heldout_iou_pooled" in r]
             if pts:
                 ax.plot(*zip(*pts), color=c, alpha=0.3, lw=0.8)
-        med = [(n, np.median([r["heldout_iou"] for r in rows if r["kind"] == kind and r["n"] == n and "heldout_iou" in r]))
-               for n in counts]
-        med = [(n, v) for n, v in med if np.isfinite(v)]
+        med = []
+        for n in counts:
+            v = [r["heldout_iou_pooled"] for r in rows if r["kind"] == kind and r["n"] == n and "heldout_iou_pooled" in r]
+            if v:
+                med.append((n, np.median(v)))
         if med:
             ax.plot(*zip(*med), "o-", color=c, lw=2, label=f"{kind} (median)")
     ax.set_xscale("log", base=2)
     ax.set_xticks(counts, [str(n) for n in counts])
     ax.set_xlabel("trial prints")
-    ax.set_ylabel("held-out IoU vs the lab's prints")
+    ax.set_ylabel("Eq. 1's held-out IoU vs the lab's prints (pooled)")
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -285,7 +370,11 @@ def main(argv=None) -> None:
                     f"{','.join(bench_diagnosis.RANDOM_EFFECTS)}); default: random_lab's labs, many effects at once")
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide", help="with --effects: their magnitudes")
     ap.add_argument("--diagnose", action="store_true", help="the residual diagnosis after each calibration")
+    ap.add_argument("--sequential", action="store_true", help="with --diagnose: the next masks designed from the "
+                    "last diagnosis, count by count, printed as new batches")
     a = ap.parse_args(argv)
+    if a.sequential and not a.diagnose:
+        ap.error("--sequential designs from the diagnosis: give --diagnose too")
     a.counts = sorted(int(x) for x in a.counts.split(","))
     logging.basicConfig(level=logging.WARNING)
     import torch
@@ -303,17 +392,19 @@ def main(argv=None) -> None:
             a.order += [effects[j] for j in rng.permutation(len(effects))]
     cmd = " ".join(["python benchmarks/bench_print_budget.py", *(argv if argv is not None else sys.argv[1:])])
     print(f"seed {seed} (repeat with --seed {seed})", flush=True)
-    if a.out.exists():
-        shutil.rmtree(a.out)
-    a.out.mkdir(parents=True)
+    from unscatter.io import InputError, benchmark_output_dir, write_tsv, write_yaml
+
+    try:
+        a.out = benchmark_output_dir(a.out, script="benchmarks/bench_print_budget.py")
+    except InputError as exc:
+        ap.error(str(exc))
     labs, rows = [], []
-    from unscatter.io import write_tsv, write_yaml
 
     for i in range(a.labs):
         lab, r = run_lab(i, seed, a, a.out)
         labs.append(lab)
         rows += r
-        write_tsv(a.out / "budget.tsv", rows)
+        write_tsv(a.out / "budget.tsv", rows, list(dict.fromkeys(k for r in rows for k in r)))
         write_yaml(a.out / "labs.yaml", dict(seed=seed, labs=labs))
     text = summarize(seed, labs, rows, a.counts, cmd)
     (a.out / "summary.txt").write_text(text + "\n")

@@ -35,14 +35,14 @@ from __future__ import annotations
 
 import argparse
 import logging
-import shutil
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from unscatter.imaging import Settings, correct_image, threshold_print, transform_rms_px
-from unscatter.io import read_print, read_tsv, read_yaml, write_png, write_tsv, write_yaml
+from unscatter.io import InputError, benchmark_output_dir, read_print, read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.metrics import iou
 
 SILENT_POSE_PX = 1.5  # an 'ok' print whose pose is off by more is silently wrong
@@ -144,9 +144,7 @@ def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2) -> tup
     from unscatter.masks import test_pattern_masks, test_pattern_of
 
     over = random_lab(np.random.default_rng([seed, i, 0]))
-    d = root / f"lab_{i:02d}"
-    if d.exists():
-        shutil.rmtree(d)
+    d = root / f"lab_{i:02d}"  # root is emptied for the run (benchmark_output_dir)
     for mid, m in test_pattern_masks(prints, seed=_substream(seed, i, 1)).items():
         write_png(d / "masks" / f"{mid}.png", m)
     t0 = time.perf_counter()
@@ -299,8 +297,10 @@ def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 24, t
 
 def random_labs(a) -> None:
     seed = a.seed if a.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
-    out = a.out or Path("benchmarks/out/registration_labs")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out = benchmark_output_dir(a.out or Path("benchmarks/out/registration_labs"), script="benchmarks/bench_registration.py")
+    except InputError as exc:
+        sys.exit(f"error: {exc}")
     cmd = f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed} --threads {a.threads}"
     print(f"seed {seed} (repeat with: {cmd})", flush=True)
     logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)  # failures are in the tables below

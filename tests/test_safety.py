@@ -394,3 +394,28 @@ def test_a_design_larger_than_the_dmd_fails_before_ilt(tiny, tmp_path):
     write_png(big, d)
     line = refused(run("compensate", big, "--method", "ilt", "--model", tiny / "params.yaml", "-o", tmp_path / "m.png"), big)
     assert "does not fit the 1600x2560 DMD frame" in line and not (tmp_path / "m.png").exists()
+
+
+def test_a_benchmark_never_empties_a_users_folder(user, tmp_path, capsys):
+    import importlib.util
+
+    from unscatter.io import benchmark_output_dir
+
+    before = sums(user)
+    with pytest.raises(InputError, match="not an earlier output of `benchmarks/bench_print_budget.py`"):
+        benchmark_output_dir(user, script="benchmarks/bench_print_budget.py")
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_print_budget.py"
+    spec = importlib.util.spec_from_file_location("bench_print_budget", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    with pytest.raises(SystemExit):
+        bench.main(["--labs", "0", "--out", str(user)])
+    assert "is not empty and is not an earlier output" in capsys.readouterr().err
+    assert sums(user) == before
+    # its own earlier output is emptied for a rerun; another script's is not
+    out = benchmark_output_dir(tmp_path / "b", script="benchmarks/bench_print_budget.py")
+    (out / "stale.tsv").write_text("old\n")
+    assert not (benchmark_output_dir(out, script="benchmarks/bench_print_budget.py") / "stale.tsv").exists()
+    with pytest.raises(InputError, match="holds the output of `benchmarks/bench_print_budget.py`"):
+        benchmark_output_dir(out, script="benchmarks/bench_registration.py")
+    assert benchmark_output_dir(out, script="benchmarks/bench_print_budget.py", keep=True) == out.resolve()

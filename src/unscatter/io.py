@@ -500,14 +500,14 @@ def check_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
     if marker is None:
         if recognise is not None and recognise(where):
             return where
-        raise InputError(path, f"is not empty and is not an earlier output of `unscatter {command}`{keep}")
+        raise InputError(path, f"is not empty and is not an earlier output of `{_program(command)}`{keep}")
     if marker["command"] != command:
-        raise InputError(path, f"holds the output of `unscatter {marker['command']}`, not of `unscatter {command}`{keep}")
+        raise InputError(path, f"holds the output of `{_program(marker['command'])}`, not of `{_program(command)}`{keep}")
     if isinstance(marker.get("files"), list):
         added = sorted(set(_files(where)) - set(marker["files"]))
         if added:
             more = f" and {len(added) - 3} more" if len(added) > 3 else ""
-            raise InputError(path, f"holds files that `unscatter {command}` did not write ({', '.join(added[:3])}{more}); "
+            raise InputError(path, f"holds files that `{_program(command)}` did not write ({', '.join(added[:3])}{more}); "
                                    f"they would be lost{keep}")
     return where
 
@@ -520,6 +520,28 @@ def claim_output_dir(path, *, command: str, inputs=(), recognise=None) -> Path:
     final.mkdir(parents=True, exist_ok=True)
     _write_marker(final, command)
     return final
+
+
+def _program(command: str) -> str:
+    """How a command is run: unscatter's subcommands, or a script given as its path."""
+    return command if command.endswith(".py") else f"unscatter {command}"
+
+
+def benchmark_output_dir(path, *, script: str, keep: bool = False) -> Path:
+    """A benchmark's output folder, emptied for a new run (``keep``: left as it is).
+
+    Benchmarks write their tables lab by lab, so that a long run interrupted keeps what it
+    measured; they cannot write into a hidden folder swapped in at the end as
+    ``output_dir`` does. The folder is removed only when it is empty or an earlier output
+    of the same ``script`` (its marker file); any other folder raises InputError, nothing
+    removed: ``--out ~/prints`` must not delete a user's prints.
+    """
+    where = check_output_dir(path, command=script)
+    if where.exists() and not keep:
+        shutil.rmtree(where)
+    where.mkdir(parents=True, exist_ok=True)
+    _write_marker(where, script)
+    return where
 
 
 @contextlib.contextmanager
