@@ -76,14 +76,12 @@ def _subset(reg: Path, ids: list, out: Path) -> int:
 
 
 def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
-    from unscatter.calibration import calibrate
     from unscatter.design import design_masks
     from unscatter.imaging import register_batch
     from unscatter.io import read_print, write_png
     from unscatter.lab import load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks
-    from unscatter.model import simulate
 
     d = root / f"lab{i:02d}"
     over = random_lab(np.random.default_rng(_substream(seed, i, 0)))
@@ -126,23 +124,10 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
             used = _subset(d / "reg", ids[kind][:n], sub)
             row = dict(lab=i, kind=kind, n=n, prints_used=used)
             if used:
-                t2 = time.perf_counter()
-                try:
-                    p = calibrate(sub, d / f"cal_{kind}_{n:02d}", seed=_substream(seed, i, 6), progress=False,
-                                  residual_maps=False, figure=False, threads=1, **_fit_settings(a))
-                except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
-                    row.update(error=" ".join(str(exc).split())[:120])
-                else:
-                    mean, pooled = held_out_iou(simulate(p, held_masks), truth)
-                    row.update(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
-                               sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1),
-                               T=float(p.values["T"]), calibrate_s=round(time.perf_counter() - t2, 1))
-                    if a.diagnose:
-                        row.update(_diagnosis(sub, d / f"cal_{kind}_{n:02d}" / "params.yaml", d / f"diag_{kind}_{n:02d}",
-                                              effect, held_masks, truth, _substream(seed, i, 7)))
+                row.update(_fit_and_score(sub, d, kind, n, a, seed, i, effect, held_masks, truth, lab_sigma_px))
             rows.append(_report(i, row, lab_sigma_px))
     if a.sequential:
-        rows += _sequential(i, seed, a, d, over, ids["designed"][:a.counts[0]], effect, held_masks, truth, lab_sigma_px)
+        rows += _sequential(i, seed, a, d, over, effect, held_masks, truth, lab_sigma_px)
     return lab, rows
 
 
@@ -154,18 +139,16 @@ def _report(i: int, row: dict, lab_sigma_px: float) -> dict:
     return row
 
 
-def _sequential(i: int, seed: int, a, d: Path, over: dict, first: list, effect, held_masks, truth: list,
+def _sequential(i: int, seed: int, a, d: Path, over: dict, effect, held_masks, truth: list,
                 lab_sigma_px: float) -> list[dict]:
     """The sequential kind: the first count's designed prints (already diagnosed as
     ``diag_designed_NN``), then at each next count the masks the last diagnosis proposes,
     printed on the lab as a new batch, registered, and calibrated and diagnosed with the
     prints so far."""
-    from unscatter.calibration import calibrate
     from unscatter.design import design_masks
     from unscatter.imaging import register_batch
     from unscatter.io import write_png
     from unscatter.lab import print_batch
-    from unscatter.model import simulate
 
     n0 = a.counts[0]
     folders = [d / f"designed_{n0:02d}"]
@@ -192,27 +175,39 @@ def _sequential(i: int, seed: int, a, d: Path, over: dict, first: list, effect, 
         have = n
         used = _usable(folders)
         row.update(prints_used=used, failed_new=sum(r["status"] == "failed" for r in qc), design_s=round(t_design, 1))
-        t2 = time.perf_counter()
-        cal = d / f"cal_sequential_{n:02d}"
-        try:
-            p = calibrate(folders, cal, seed=_substream(seed, i, 6), progress=False, residual_maps=False, figure=False,
-                          threads=1, **_fit_settings(a))
-        except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
-            rows.append(_report(i, dict(row, error=" ".join(str(exc).split())[:120]), lab_sigma_px))
-            break
-        mean, pooled = held_out_iou(simulate(p, held_masks), truth)
-        row.update(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
-                   sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1), T=float(p.values["T"]),
-                   calibrate_s=round(time.perf_counter() - t2, 1))
-        diag = d / f"diag_sequential_{n:02d}"
-        row.update(_diagnosis(folders, cal / "params.yaml", diag, effect, held_masks, truth, _substream(seed, i, 7)))
+        row.update(_fit_and_score(folders, d, "sequential", n, a, seed, i, effect, held_masks, truth, lab_sigma_px))
         rows.append(_report(i, row, lab_sigma_px))
+        if "error" in row:
+            break
+        diag, cal = d / f"diag_sequential_{n:02d}", d / f"cal_sequential_{n:02d}"
     return rows
 
 
-def _fit_settings(a) -> dict:
-    return dict(population=48, generations=30, folds=0, bootstrap=0) if a.full else \
+def _fit_and_score(prints, d: Path, kind: str, n: int, a, seed: int, i: int, effect, held_masks, truth: list,
+                   lab_sigma_px: float) -> dict:
+    """Eq. 1 calibrated on ``prints`` (``cal_KIND_NN``; ``--full``: the workflow's GA 48 x 30,
+    default GA 24 x 10, no CV) and scored on the held-out masks; with ``--diagnose`` the
+    diagnosis after it (``diag_KIND_NN``)."""
+    from unscatter.calibration import calibrate
+    from unscatter.model import simulate
+
+    fit = dict(population=48, generations=30, folds=0, bootstrap=0) if a.full else \
         dict(population=24, generations=10, folds=0, bootstrap=0)
+    t0 = time.perf_counter()
+    cal = d / f"cal_{kind}_{n:02d}"
+    try:
+        p = calibrate(prints, cal, seed=_substream(seed, i, 6), progress=False, residual_maps=False, figure=False,
+                      threads=1, **fit)
+    except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
+        return dict(error=" ".join(str(exc).split())[:120])
+    mean, pooled = held_out_iou(simulate(p, held_masks), truth)
+    row = dict(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
+               sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1), T=float(p.values["T"]),
+               calibrate_s=round(time.perf_counter() - t0, 1))
+    if a.diagnose:
+        row.update(_diagnosis(prints, cal / "params.yaml", d / f"diag_{kind}_{n:02d}", effect, held_masks, truth,
+                              _substream(seed, i, 7)))
+    return row
 
 
 def _usable(folders: list) -> int:
