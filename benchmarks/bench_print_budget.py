@@ -10,7 +10,9 @@ its effects over wide ranges; a new seed each run, printed, ``--seed`` repeats i
    (``design.design_masks``: greedy, so its first n are the n-mask design; designed
    without knowing the lab), and held-out masks (test patterns and paper masks), are
    printed and imaged on the lab in one batch and registered as the workflow does
-   (failed prints are skipped: a print lost to QC is a print paid for and lost);
+   (failed prints are skipped: a print lost to QC is a print paid for and lost); the
+   registration is scored against the lab's true transforms: prints used although
+   silently wrong, and failed prints that were in fact within 1.5 px;
 2. for each kind and each n of ``--counts``, Eq. 1 is calibrated on the prints of the
    first n masks (``--full``: the workflow's GA 48 x 30; default: GA 24 x 10, no CV);
 3. the calibrated model prints the held-out masks; its IoU against the lab's true
@@ -52,6 +54,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent
 sys.path.insert(0, str(ROOT))
 import bench_diagnosis  # noqa: E402 (the one-effect labs and the verdicts of the diagnosis benchmark)
+import bench_registration  # noqa: E402 (the registration scored against the lab's true transforms)
 
 
 def _substream(seed: int, lab: int, what: int) -> int:
@@ -111,12 +114,14 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     qc = register_batch(d / "batch", d / "reg", skip_failed=True, progress=False)
     t_reg = time.perf_counter() - t1
     failed = {r["id"] for r in qc if r["status"] == "failed"}
+    silent, close = registration_truth(d / "reg", d / "batch.truth")
     truth = [read_print(d / "batch.truth" / "prints" / f"{mid}.png") for mid in ids["held"]]
     held_masks = np.stack(held)
     cfg = load_config(overrides=over)
     lab_sigma_px = cfg["printer"]["kernel"]["sigma_um"] / float(cfg["batch"]["pixel_size_um"])
     lab = dict(lab=i, describe=describe_lab(over), effect=effect, magnitude=magnitude, overrides=over, failed=sorted(failed),
-               design_s=round(t_design, 1), register_s=round(t_reg, 1), lab_sigma_px=lab_sigma_px)
+               design_s=round(t_design, 1), register_s=round(t_reg, 1), lab_sigma_px=lab_sigma_px,
+               silently_wrong=silent, failed_within_1_5px=close)
     rows = []
     for kind in kinds:
         for n in a.counts:
@@ -171,6 +176,8 @@ def _sequential(i: int, seed: int, a, d: Path, over: dict, effect, held_masks, t
             write_png(step_dir / "masks" / f"seq{step}_{j:03d}.png", m)
         print_batch(step_dir / "masks", step_dir / "batch", overrides=over, seed=_substream(seed, i, 20 + step), progress=False)
         qc = register_batch(step_dir / "batch", step_dir / "reg", skip_failed=True, progress=False)
+        silent, _ = registration_truth(step_dir / "reg", step_dir / "batch.truth")
+        row["silently_wrong_new"] = ",".join(silent)
         folders.append(step_dir / "reg")
         have = n
         used = _usable(folders)
@@ -215,6 +222,16 @@ def _usable(folders: list) -> int:
     from unscatter.io import read_tsv
 
     return sum(r["status"] != "failed" for f in folders for r in read_tsv(Path(f) / "qc.tsv"))
+
+
+def registration_truth(reg: Path, truth: Path) -> tuple[list[str], int]:
+    """The registration against the lab's true transforms (``bench_registration``): the
+    prints that went into the budget silently wrong (ok with the pose more than 1.5 px
+    off, or empty where the truth printed) and how many failed prints were in fact
+    within 1.5 px (the budget QC cost without need)."""
+    rows = bench_registration.evaluate(reg, truth)
+    close = sum(r["status"] == "failed" and r.get("rms_px", np.inf) <= bench_registration.SILENT_POSE_PX for r in rows)
+    return [r["id"] for r in rows if bench_registration.silently_wrong(r)], int(close)
 
 
 def held_out_iou(sim, truth: list) -> tuple[float, float]:
@@ -281,8 +298,14 @@ def summarize(seed, labs, rows, counts, cmd) -> str:
     L = [f"print budget: {cmd}", f"seed {seed}, {len(labs)} labs", ""]
     for lab in labs:
         L.append(f"lab {lab['lab']}: {lab['describe']}")
-        L.append(f"   registration failed {len(lab['failed'])}: {', '.join(lab['failed']) or '-'}; "
+        L.append(f"   registration failed {len(lab['failed'])} ({lab['failed_within_1_5px']} of them within 1.5 px of the "
+                 f"truth): {', '.join(lab['failed']) or '-'}; silently wrong (used as good) "
+                 f"{len(lab['silently_wrong'])}: {', '.join(lab['silently_wrong']) or '-'}; "
                  f"design {lab['design_s']} s, registration {lab['register_s']} s")
+    if labs:
+        L.append(f"registration, all labs: failed {sum(len(x['failed']) for x in labs)} ("
+                 f"{sum(x['failed_within_1_5px'] for x in labs)} within 1.5 px of the truth), silently wrong "
+                 f"{sum(len(x['silently_wrong']) for x in labs)} (in the first batch; sequential batches: budget.tsv)")
     L += ["", "Eq. 1's held-out IoU against the lab's true prints: median over labs of the IoU pooled over the "
           "held-out masks (metrics.pooled_iou) [min, max], the median of the per-mask mean, |sigma error| median",
           f"{'n':>4} " + " ".join(f"{k + ' pooled':>26} {'mean':>7} {'|sig err|':>9}" for k in kinds)]
