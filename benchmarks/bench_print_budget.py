@@ -47,6 +47,7 @@ import logging
 import shutil
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -59,6 +60,24 @@ import bench_registration  # noqa: E402 (the registration scored against the lab
 
 def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.default_rng([seed, lab, what]).integers(2**31))
+
+
+@dataclass
+class LabRun:
+    """One lab of the run: where its files go, its printer and effect, the held-out masks
+    and the lab's true prints of them."""
+
+    i: int
+    seed: int
+    d: Path
+    over: dict
+    effect: str | None
+    held_masks: np.ndarray
+    truth: list
+    lab_sigma_px: float
+
+    def sub(self, what: int) -> int:
+        return _substream(self.seed, self.i, what)
 
 
 def _subset(reg: Path, ids: list, out: Path) -> int:
@@ -122,6 +141,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     lab = dict(lab=i, describe=describe_lab(over), effect=effect, magnitude=magnitude, overrides=over, failed=sorted(failed),
                design_s=round(t_design, 1), register_s=round(t_reg, 1), lab_sigma_px=lab_sigma_px,
                silently_wrong=silent, failed_within_1_5px=close)
+    run = LabRun(i, seed, d, over, effect, held_masks, truth, lab_sigma_px)
     rows = []
     for kind in kinds:
         for n in a.counts:
@@ -129,14 +149,15 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
             used = _subset(d / "reg", ids[kind][:n], sub)
             row = dict(lab=i, kind=kind, n=n, prints_used=used)
             if used:
-                row.update(_fit_and_score(sub, d, kind, n, a, seed, i, effect, held_masks, truth, lab_sigma_px))
-            rows.append(_report(i, row, lab_sigma_px))
+                row.update(_fit_and_score(run, a, sub, kind, n))
+            rows.append(_report(run, row))
     if a.sequential:
-        rows += _sequential(i, seed, a, d, over, effect, held_masks, truth, lab_sigma_px)
+        rows += _sequential(run, a)
     return lab, rows
 
 
-def _report(i: int, row: dict, lab_sigma_px: float) -> dict:
+def _report(run: LabRun, row: dict) -> dict:
+    i, lab_sigma_px = run.i, run.lab_sigma_px
     print(f"  lab {i} {row['kind']:10s} n={row['n']:2d} used {row['prints_used']:2d}  IoU {row.get('heldout_iou', float('nan')):.4f}  "
           f"sigma {row.get('sigma_px', float('nan')):.2f} (lab {lab_sigma_px:.2f})  {row.get('error', '')}"
           + (f"  named {row['named']} ({row['verdict']}), selected IoU {row['heldout_iou_selected']:.4f}"
@@ -144,8 +165,7 @@ def _report(i: int, row: dict, lab_sigma_px: float) -> dict:
     return row
 
 
-def _sequential(i: int, seed: int, a, d: Path, over: dict, effect, held_masks, truth: list,
-                lab_sigma_px: float) -> list[dict]:
+def _sequential(run: LabRun, a) -> list[dict]:
     """The sequential kind: the first count's designed prints (already diagnosed as
     ``diag_designed_NN``), then at each next count the masks the last diagnosis proposes,
     printed on the lab as a new batch, registered, and calibrated and diagnosed with the
@@ -155,26 +175,28 @@ def _sequential(i: int, seed: int, a, d: Path, over: dict, effect, held_masks, t
     from unscatter.io import write_png
     from unscatter.lab import print_batch
 
-    n0 = a.counts[0]
+    d, n0 = run.d, a.counts[0]
     folders = [d / f"designed_{n0:02d}"]
     diag, cal = d / f"diag_designed_{n0:02d}", d / f"cal_designed_{n0:02d}"
     have, rows = n0, []
     for step, n in enumerate(a.counts[1:], 1):
-        row = dict(lab=i, kind="sequential", n=n)
+        row = dict(lab=run.i, kind="sequential", n=n)
         # from the diagnosis; where it could not be made (too few prints), from the calibration
-        model = diag if (diag / "model.yaml").is_file() else cal / "params.yaml"
-        if not Path(model).is_file() and not (Path(model) / "model.yaml").is_file():
-            rows.append(_report(i, dict(row, prints_used=0, error="no calibration to design from"), lab_sigma_px))
+        if (diag / "model.yaml").is_file():
+            model, row["designed_from"] = diag, "diagnosis"
+        elif (cal / "params.yaml").is_file():
+            model, row["designed_from"] = cal / "params.yaml", "calibration"
+        else:
+            rows.append(_report(run, dict(row, prints_used=0, error="no calibration to design from")))
             break
-        row["designed_from"] = "diagnosis" if model == diag else "calibration"
         t0 = time.perf_counter()
         new = design_masks(n - have, model=model, prints=folders, pool=a.pool, draws=a.draws,
-                           seed=_substream(seed, i, 10 + step), progress=False, compare=False)["masks"]
+                           seed=run.sub(10 + step), progress=False, compare=False)["masks"]
         t_design = time.perf_counter() - t0
         step_dir = d / f"sequential_{n:02d}"
         for j, m in enumerate(new.values()):
             write_png(step_dir / "masks" / f"seq{step}_{j:03d}.png", m)
-        print_batch(step_dir / "masks", step_dir / "batch", overrides=over, seed=_substream(seed, i, 20 + step), progress=False)
+        print_batch(step_dir / "masks", step_dir / "batch", overrides=run.over, seed=run.sub(20 + step), progress=False)
         qc = register_batch(step_dir / "batch", step_dir / "reg", skip_failed=True, progress=False)
         silent, _ = registration_truth(step_dir / "reg", step_dir / "batch.truth")
         row["silently_wrong_new"] = ",".join(silent)
@@ -182,16 +204,15 @@ def _sequential(i: int, seed: int, a, d: Path, over: dict, effect, held_masks, t
         have = n
         used = _usable(folders)
         row.update(prints_used=used, failed_new=sum(r["status"] == "failed" for r in qc), design_s=round(t_design, 1))
-        row.update(_fit_and_score(folders, d, "sequential", n, a, seed, i, effect, held_masks, truth, lab_sigma_px))
-        rows.append(_report(i, row, lab_sigma_px))
+        row.update(_fit_and_score(run, a, folders, "sequential", n))
+        rows.append(_report(run, row))
         if "error" in row:
             break
         diag, cal = d / f"diag_sequential_{n:02d}", d / f"cal_sequential_{n:02d}"
     return rows
 
 
-def _fit_and_score(prints, d: Path, kind: str, n: int, a, seed: int, i: int, effect, held_masks, truth: list,
-                   lab_sigma_px: float) -> dict:
+def _fit_and_score(run: LabRun, a, prints, kind: str, n: int) -> dict:
     """Eq. 1 calibrated on ``prints`` (``cal_KIND_NN``; ``--full``: the workflow's GA 48 x 30,
     default GA 24 x 10, no CV) and scored on the held-out masks; with ``--diagnose`` the
     diagnosis after it (``diag_KIND_NN``)."""
@@ -201,19 +222,19 @@ def _fit_and_score(prints, d: Path, kind: str, n: int, a, seed: int, i: int, eff
     fit = dict(population=48, generations=30, folds=0, bootstrap=0) if a.full else \
         dict(population=24, generations=10, folds=0, bootstrap=0)
     t0 = time.perf_counter()
-    cal = d / f"cal_{kind}_{n:02d}"
+    cal = run.d / f"cal_{kind}_{n:02d}"
     try:
-        p = calibrate(prints, cal, seed=_substream(seed, i, 6), progress=False, residual_maps=False, figure=False,
+        p = calibrate(prints, cal, seed=run.sub(6), progress=False, residual_maps=False, figure=False,
                       threads=1, **fit)
     except Exception as exc:  # noqa: BLE001 (a calibration that cannot be made is a result)
         return dict(error=" ".join(str(exc).split())[:120])
-    mean, pooled = held_out_iou(simulate(p, held_masks), truth)
+    mean, pooled = held_out_iou(simulate(p, run.held_masks), run.truth)
     row = dict(heldout_iou=mean, heldout_iou_pooled=pooled, sigma_px=float(p.values["sigma_px"]),
-               sigma_rel_err=float(p.values["sigma_px"] / lab_sigma_px - 1), T=float(p.values["T"]),
+               sigma_rel_err=float(p.values["sigma_px"] / run.lab_sigma_px - 1), T=float(p.values["T"]),
                calibrate_s=round(time.perf_counter() - t0, 1))
     if a.diagnose:
-        row.update(_diagnosis(prints, cal / "params.yaml", d / f"diag_{kind}_{n:02d}", effect, held_masks, truth,
-                              _substream(seed, i, 7)))
+        row.update(_diagnosis(prints, cal / "params.yaml", run.d / f"diag_{kind}_{n:02d}", run.effect, run.held_masks,
+                              run.truth, run.sub(7)))
     return row
 
 
