@@ -47,8 +47,8 @@ import logging
 import shutil
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -62,8 +62,7 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.default_rng([seed, lab, what]).integers(2**31))
 
 
-@dataclass
-class LabRun:
+class LabRun(NamedTuple):
     """One lab of the run: where its files go, its printer and effect, the held-out masks
     and the lab's true prints of them."""
 
