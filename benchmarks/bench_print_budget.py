@@ -114,7 +114,8 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
         over = dict(over, printer=fx["printer"])
     top = max(a.counts)
     t0 = time.perf_counter()
-    design = design_masks(top, pool=a.pool, draws=a.draws, seed=_substream(seed, i, 1), progress=False, compare=False)
+    design = design_masks(top, pool=a.pool, draws=a.draws, seed=_substream(seed, i, 1), fiducials=a.fiducials,
+                          progress=False, compare=False)
     t_design = time.perf_counter() - t0
     kinds = {
         "paper": list(trial_masks(top, seed=_substream(seed, i, 2)).values()),
@@ -190,7 +191,7 @@ def _sequential(run: LabRun, a) -> list[dict]:
             break
         t0 = time.perf_counter()
         new = design_masks(n - have, model=model, prints=folders, pool=a.pool, draws=a.draws,
-                           seed=run.sub(10 + step), progress=False, compare=False)["masks"]
+                           seed=run.sub(10 + step), fiducials=a.fiducials, progress=False, compare=False)["masks"]
         t_design = time.perf_counter() - t0
         step_dir = d / f"sequential_{n:02d}"
         for j, m in enumerate(new.values()):
@@ -407,6 +408,8 @@ def main(argv=None) -> None:
     ap.add_argument("--effects", default=None, help="labs with one effect each, drawn from these (bench_diagnosis: "
                     f"{','.join(bench_diagnosis.RANDOM_EFFECTS)}); default: random_lab's labs, many effects at once")
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide", help="with --effects: their magnitudes")
+    ap.add_argument("--no-fiducials", dest="fiducials", action="store_false",
+                    help="designed masks without their registration marks (unscatter.design.fiducial_marks)")
     ap.add_argument("--diagnose", action="store_true", help="the residual diagnosis after each calibration")
     ap.add_argument("--sequential", action="store_true", help="with --diagnose: the next masks designed from the "
                     "last diagnosis, count by count, printed as new batches")

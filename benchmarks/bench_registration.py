@@ -17,7 +17,10 @@ draws N labs with ``unscatter.lab.random_lab`` (optics, camera, export, printer 
 microscope effects over wide ranges), prints ``--prints`` test masks on each (all test
 patterns of ``unscatter.masks.TEST_PATTERNS``, the paper's families included), registers
 each batch as the workflow does (skipping failed prints) and scores every print against
-the lab's truth. Without ``--seed`` each run draws new labs; the seed it drew is printed
+the lab's truth. ``--masks pool`` or ``--masks marked`` prints the trial-mask design's
+candidates instead (``unscatter.design.candidate_pool``), without or with their
+registration marks: the same labs and candidates for the same seed, so the two runs
+measure what the marks do. Without ``--seed`` each run draws new labs; the seed it drew is printed
 and ``--seed S`` repeats the run. Labs run one after another (registration itself uses
 the two cores). Writes ``prints.tsv`` (one row per print), ``labs.yaml`` (each lab's
 config overrides), ``summary.txt`` (what is printed) and ``worst.png`` (the overlays of
@@ -137,15 +140,29 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.SeedSequence([seed, lab, what]).generate_state(1)[0])
 
 
-def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2) -> tuple[dict, list[dict]]:
-    """Draw lab ``i``, print test masks on it, register, score. Returns (lab, print rows)."""
+def lab_masks(kind: str, count: int, seed: int) -> dict:
+    """id -> mask: test patterns (``unscatter.masks.test_pattern_masks``), or candidates of
+    the trial-mask design's pool (``unscatter.design.candidate_pool``) without ("pool") or
+    with their registration marks ("marked")."""
+    if kind == "test":
+        from unscatter.masks import test_pattern_masks
+
+        return test_pattern_masks(count, seed=seed)
+    from unscatter.design import candidate_pool
+
+    return candidate_pool(count, seed=seed, fiducials=kind == "marked")
+
+
+def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2, masks: str = "test") -> tuple[dict, list[dict]]:
+    """Draw lab ``i``, print ``masks`` (``lab_masks``) on it, register, score. Returns (lab,
+    print rows)."""
     from unscatter.imaging import register_batch
     from unscatter.lab import print_batch, random_lab
-    from unscatter.masks import test_pattern_masks, test_pattern_of
+    from unscatter.masks import test_pattern_of
 
     over = random_lab(np.random.default_rng([seed, i, 0]))
     d = root / f"lab_{i:02d}"  # root is emptied for the run (benchmark_output_dir)
-    for mid, m in test_pattern_masks(prints, seed=_substream(seed, i, 1)).items():
+    for mid, m in lab_masks(masks, prints, _substream(seed, i, 1)).items():
         write_png(d / "masks" / f"{mid}.png", m)
     t0 = time.perf_counter()
     print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 2), progress=False)
@@ -155,7 +172,8 @@ def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2) -> tup
     t_reg = time.perf_counter() - t0
     rows = evaluate(d / "reg", d / "batch.truth")
     for r in rows:
-        r.update(lab=i, pattern=test_pattern_of(r["id"]), silently_wrong=int(silently_wrong(r)))
+        r.update(lab=i, pattern=test_pattern_of(r["id"]) if masks == "test" else r["id"].rsplit("_", 1)[0],
+                 silently_wrong=int(silently_wrong(r)))
     lab = dict(index=i, overrides=over, register_s=t_reg, print_s=t_print, n=len(rows),
                image_size=tuple(over["microscope"]["image_size"]))
     return lab, rows
@@ -216,6 +234,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
              f"scaled to 720x720 by pixel count: median {np.median(per32 / mpx):.1f} s, max {np.max(per32 / mpx):.1f} s)")
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
     L += qc_lines(rows)
+    L += metadata_lines(labs, rows)
     L += ["", f"silently wrong ({len(silent)}): ok with pose error > {SILENT_POSE_PX} px, or empty with truth solid > {SILENT_EMPTY_SOLID}"]
     for r in sorted(silent, key=lambda r: -r.get("rms_px", 0)):
         L.append(f"  lab {r['lab']}  {r['id']:22s} {r['pattern']:15s} {r['status']:6s} pose error {_fmt(r.get('rms_px'), '.2f')} px  "
@@ -234,6 +253,30 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
                  f"  {_fmt(float(np.mean([r['iou'] for r in sc])) if sc else float('nan'), '.4f')}"
                  f" ({_fmt(float(np.mean(perf)) if perf else float('nan'), '.4f')})")
     return "\n".join(L)
+
+
+def stated_kind(over: dict) -> str:
+    """How a drawn lab states its camera pixel size (``lab.random``): none, calibrated
+    (within its stated tolerance), nominal (no tolerance stated) or stale (off by more
+    than the tolerance it states)."""
+    md = over["microscope"].get("pixel_size_metadata")
+    if not md:
+        return "none"
+    if not md.get("tolerance"):
+        return "nominal"
+    return "calibrated" if abs(md["error"]) <= md["tolerance"] else "stale"
+
+
+def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures and silent errors by how the lab states its camera pixel size."""
+    kind = {lab["index"]: stated_kind(lab["overrides"]) for lab in labs}
+    parts = []
+    for k in ("none", "nominal", "calibrated", "stale"):
+        rr = [r for r in rows if kind[r["lab"]] == k]
+        if rr:
+            parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
+                         f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
+    return ["  by the camera pixel size the lab states: " + "; ".join(parts)]
 
 
 def qc_lines(rows: list[dict]) -> list[str]:
@@ -301,12 +344,13 @@ def random_labs(a) -> None:
         out = benchmark_output_dir(a.out or Path("benchmarks/out/registration_labs"), script="benchmarks/bench_registration.py")
     except InputError as exc:
         sys.exit(f"error: {exc}")
-    cmd = f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed} --threads {a.threads}"
+    cmd = (f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed} --threads {a.threads}"
+           + (f" --masks {a.masks}" if a.masks != "test" else ""))
     print(f"seed {seed} (repeat with: {cmd})", flush=True)
     logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)  # failures are in the tables below
     labs, rows = [], []
     for i in range(a.labs):
-        lab, rr = run_lab(i, seed, a.prints, out, a.threads)
+        lab, rr = run_lab(i, seed, a.prints, out, a.threads, a.masks)
         labs.append(lab)
         rows += rr
         print(lab_line(lab, rr) + f" (printing {lab['print_s']:.1f} s)", flush=True)
@@ -330,6 +374,9 @@ def main():
     ap.add_argument("--lab-config", type=Path, help="overrides of the default lab (one lab)")
     ap.add_argument("--labs", type=int, default=0, help="number of random labs (0: one lab)")
     ap.add_argument("--prints", type=int, default=32, help="test prints per random lab")
+    ap.add_argument("--masks", choices=("test", "pool", "marked"), default="test",
+                    help="random labs: test patterns, or the trial-mask design's candidates without (pool) or with "
+                         "(marked) their registration marks")
     ap.add_argument("--threads", type=int, default=2, help="registration threads (the workflow uses 2)")
     a = ap.parse_args()
     if a.labs:

@@ -128,7 +128,7 @@ def test_random_labs_stay_in_their_ranges():
     from unscatter.lab.random import MARGIN_PX, RANGES, field_extent_px, random_lab
 
     default = load_config()
-    seen_formats, seen_effects = set(), set()
+    seen_formats, seen_effects, seen_metadata = set(), set(), set()
     for s in range(200):
         over = random_lab(np.random.default_rng(s))
         _known_keys(over, default)
@@ -164,7 +164,19 @@ def test_random_labs_stay_in_their_ranges():
         if hs:
             assert within("hotspot_amplitude", hs["amplitude"]) and within("hotspot_width", hs["width"])
         seen_formats.add(m["format"])
+        md = m["pixel_size_metadata"]
+        if md:  # what the lab states of its camera pixel: only what its images and objective can carry
+            one = m["scale"][1] / m["scale"][0] < 1.005
+            assert md["where"] in (["ome", "imagej"] if m["format"] == "tif16" else []) + (["batch"] if one else [])
+            tol = md["tolerance"]
+            if tol is None:
+                assert within("pixel_size_error", md["error"])
+            else:
+                assert within("pixel_size_tolerance", tol)
+                assert abs(md["error"]) <= tol / 2 + 1e-9 or RANGES["stale_factor"][0] * tol - 1e-9 <= abs(md["error"]) <= RANGES["stale_factor"][1] * tol + 1e-9
+            seen_metadata.add(md["where"] + (" stale" if tol and abs(md["error"]) > tol else ""))
     assert seen_formats == {"tif16", "png8"} and seen_effects == {"haze", "staining", "tilt"}
+    assert seen_metadata >= {"ome", "imagej", "batch", "ome stale"} or seen_metadata >= {"ome", "imagej", "batch", "imagej stale"}
 
 
 def test_describe_lab_names_the_effects_a_lab_has_and_lacks():

@@ -271,6 +271,23 @@ def test_batch_range_bounds_the_poses_of_a_batch():
     assert batch_range(poses[: s.batch_range_min - 1], s) is None
 
 
+def test_batch_rotation_flags_a_print_turned_far_from_the_batch():
+    from unscatter.imaging.batch import Settings, batch_rotation
+
+    s = Settings()
+    rng = np.random.default_rng(4)
+    hand = list(rng.uniform(-3.4, 3.4, 20))  # samples placed by hand, one star a spoke (21 deg) off
+    centre, limit = batch_rotation(hand + [-20.9], s)
+    assert all(abs(r - centre) <= limit for r in hand) and abs(-20.9 - centre) > limit
+    assert 6 < limit < 14  # about three times the half-range
+    centre, limit = batch_rotation([2.0 + d for d in rng.normal(0, 0.05, 12)], s)  # one fixed rotation
+    assert limit == pytest.approx(s.rotation_mads * s.min_rotation_spread) and abs(centre - 2.0) < 0.1
+    assert batch_rotation(hand[: s.batch_range_min - 1], s) is None
+    wide = list(rng.uniform(-15, 15, 20))  # a lab turning its samples anywhere within 15 deg: none is off
+    centre, limit = batch_rotation(wide, s)
+    assert all(abs(r - centre) <= limit for r in wide)
+
+
 def test_a_print_that_is_one_feature_has_its_scale_from_its_size_only():
     """One block: without a bound on its size its scale is free (a large spread, however
     small the image noise); with the size known to 0.2 px, about 0.2 px over its radius
@@ -418,3 +435,101 @@ def test_a_star_under_anisotropic_scatter_is_never_chosen_one_spoke_off():
         rows = {r["id"]: r for r in register_batch(d / "batch", d / "reg", skip_failed=True, progress=False)}
         for k in ("star_0", "star_1"):
             assert rows[k]["status"] == "failed" and "maps onto itself rotated by" in rows[k]["reason"], rows[k]
+
+
+def test_stated_scales_are_measured_by_the_prints_that_fix_their_scale():
+    from unscatter.imaging.batch import Settings, stated_scales
+
+    s = Settings()
+    priors = {k: (np.log(1.1), 0.001) for k in "abcdefgh"} | {"z": None}
+    few = {k: np.log(1.1) + d for k, d in zip("abc", (0.0005, -0.001, 0.0015))}
+    used, note = stated_scales(priors, few, s)  # too few to measure it, and they agree: used as stated
+    assert used == {k: priors[k] for k in "abcdefgh"} and note == ""
+    used, note = stated_scales(priors, {}, s)  # nothing to check it against: used as stated
+    assert set(used) == set("abcdefgh")
+    used, note = stated_scales(priors, {k: np.log(1.1) + 0.02 for k in "abc"}, s)  # 2 % off a size stated within 0.2 %
+    assert used == {} and "+2.0" in note and "not used" in note
+    # enough prints to measure it: a stale calibration 2 % off is corrected, and the
+    # spread is the prints' own (at least min_scale_sd)
+    many = {k: np.log(1.1) + 0.02 + d for k, d in zip("abcdefg", (0.0, 0.003, -0.003, 0.001, -0.001, 0.002, -0.002))}
+    used, note = stated_scales(priors, many, s)
+    assert note == "" and used["h"][0] == pytest.approx(np.log(1.1) + 0.02)
+    assert used["h"][1] == pytest.approx(1.4826 * 0.002) and used["h"][1] >= s.min_scale_sd
+
+
+def _one_feature_masks(root):
+    """Three trial masks and three prints that are one feature each (a block, an L, a
+    triangle; not a disc, whose rotation nothing fixes): their scale only their size
+    could set."""
+    import cv2
+
+    m = root / "masks"
+    for k, mask in patterns.trial_masks(3, seed=4).items():
+        write_png(m / f"{k}.png", mask)
+    ell = np.array([[150, 150], [260, 150], [260, 190], [190, 190], [190, 300], [150, 300]], np.int32)
+    tri = np.array([[300, 330], [420, 360], [330, 430]], np.int32)
+    for name, draw in (("block", lambda a: cv2.rectangle(a, (200, 220), (300, 290), 255, -1)),
+                       ("ell", lambda a: cv2.fillPoly(a, [ell], 255)),
+                       ("triangle", lambda a: cv2.fillPoly(a, [tri], 255))):
+        a = np.zeros((512, 512), np.uint8)
+        draw(a)
+        write_png(m / f"{name}.png", a)
+    return m
+
+
+def test_a_stated_pixel_size_registers_one_feature_prints_and_a_stale_one_is_caught(tmp_path):
+    """A lab whose zoom differs by image (0.8 to 1.25) states each image's camera pixel in
+    its OME-XML. Calibrated within 0.1 %, the prints that are one feature register
+    within 1.5 px; without the metadata they fail as undetermined; stated 3 % off (a
+    stale calibration, its stated tolerance 0.1 %), the batch's other prints contradict
+    it and no print is ok with its pose off."""
+    m = _one_feature_masks(tmp_path)
+    one = ("block", "ell", "triangle")
+    mic = {"scale": [0.8, 1.25], "rotation_deg": 8.0}
+    results = {}
+    for name, md in (("none", None), ("good", dict(where="ome", error=0.0003, tolerance=0.001, jitter=0.0002)),
+                     ("stale", dict(where="ome", error=0.03, tolerance=0.001, jitter=0.0002))):
+        b = tmp_path / name
+        print_batch(m, b / "batch", overrides={"microscope": dict(mic, pixel_size_metadata=md)}, seed=31, progress=False)
+        register_batch(b / "batch", b / "reg", skip_failed=True, progress=False)
+        results[name] = _pose_errors(b / "reg", b / "batch.truth")
+    # the lab wrote what it states, and registration read it
+    truth = {r["id"]: r for r in read_tsv(tmp_path / "good" / "batch.truth" / "transforms.tsv")}
+    px, where = image_pixel_size_um(tmp_path / "good" / "batch" / "images" / "block.tif")
+    assert "OME" in where and px == pytest.approx(2.96 / float(truth["block"]["scale"]), rel=0.002)
+    assert image_pixel_size_um(tmp_path / "none" / "batch" / "images" / "block.tif")[0] is None
+    assert "image_pixel_size_tolerance: 0.001" in (tmp_path / "good" / "batch" / "batch.yaml").read_text()
+    assert all(results["none"][k][0] == "failed" and "not determined" in results["none"][k][1] for k in one), results["none"]
+    assert all(results["good"][k][0] == "ok" and results["good"][k][2] <= 1.5 for k in one), results["good"]
+    assert not [k for k, (st, _, e) in results["stale"].items() if st == "ok" and not e <= 1.5], results["stale"]
+    assert all(results["stale"][k][0] == "failed" for k in one), results["stale"]
+
+
+def test_registration_marks_fix_the_pose_of_prints_that_cannot_fix_their_own(tmp_path):
+    """One block, a Siemens star and a grey grating that does not cure (designed masks
+    hold such features) fail or come out empty on a lab whose zoom differs by image; with
+    the designed masks' registration marks every one registers within 1.5 px, and the
+    grating's not curing is measured: its print holds the marks and nothing else."""
+    import cv2
+
+    from unscatter.design import fiducial_marks, with_fiducials
+    from unscatter.io import read_print
+
+    rng = np.random.default_rng(5)
+    block = np.zeros((512, 512), np.uint8)
+    cv2.rectangle(block, (190, 230), (300, 300), 255, -1)
+    content = {"block": block, "star": patterns.siemens_star(rng), "dim": patterns.grating(rng, pitch=8, duty=0.5) // 255 * 70}
+    content |= patterns.trial_masks(3, seed=4)
+    over = {"microscope": {"scale": [0.8, 1.25], "rotation_deg": 8.0}}
+    errs = {}
+    for name, marked in (("plain", False), ("marked", True)):
+        for k, mask in content.items():
+            write_png(tmp_path / name / "masks" / f"{k}.png", with_fiducials(mask) if marked else mask)
+        print_batch(tmp_path / name / "masks", tmp_path / name / "batch", overrides=over, seed=12, progress=False)
+        register_batch(tmp_path / name / "batch", tmp_path / name / "reg", skip_failed=True, progress=False)
+        errs[name] = _pose_errors(tmp_path / name / "reg", tmp_path / name / "batch.truth")
+    assert errs["plain"]["block"][0] == "failed" and errs["plain"]["dim"][0] in ("failed", "empty"), errs["plain"]
+    assert all(st == "ok" and e <= 1.5 for st, _, e in errs["marked"].values()), errs["marked"]
+    dim = read_print(tmp_path / "marked" / "reg" / "dim.png")
+    marks, clear = fiducial_marks(512)
+    assert dim[marks].mean() > 0.7 and dim[~clear].mean() < 0.01  # the marks printed (corners rounded), nothing else

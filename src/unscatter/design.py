@@ -168,10 +168,48 @@ def pattern(name: str):
     raise ValueError(f"unknown pool pattern {name!r}; known: {', '.join(POOL_PATTERNS)}")
 
 
-def candidate_pool(count: int, seed: int = 0, size: int = 512, patterns=POOL_PATTERNS) -> dict:
+# Registration marks: three solid squares at full grey in three corners of the field,
+# with a cleared band around each. A print's pose then rests on three features far apart,
+# whatever the rest of the mask is: one block or dot whose scale only its size would set,
+# a star or grating that maps onto itself turned or shifted, a near-threshold feature that
+# may not cure at all (its not curing is then measured, not a failed registration). Large
+# enough to cure at the field's corners in a dim, strongly scattering lab (40 px: the
+# centre dose stays above 0.95 of the plateau up to a scatter sigma of 9 px, 26 um on the
+# paper's printer).
+FIDUCIAL_PX = 40
+FIDUCIAL_INSET_PX = 28  # from the field's edge to the mark
+FIDUCIAL_GUARD_PX = 20  # cleared around the mark (about twice a strong scatter's sigma)
+
+
+def fiducial_marks(size: int = 512) -> tuple[np.ndarray, np.ndarray]:
+    """(marks, cleared): boolean masks of the three registration marks (top left, top
+    right, bottom left: no turn of the field maps them onto themselves) and of the area
+    around them that no other feature may use; on a field of ``size`` px, the sizes
+    above scaled by size / 512."""
+    marks = np.zeros((size, size), bool)
+    clear = np.zeros((size, size), bool)
+    k = size / 512  # the sizes above are for the paper's 512 px field
+    w, a, g = (max(1, round(v * k)) for v in (FIDUCIAL_PX, FIDUCIAL_INSET_PX, FIDUCIAL_GUARD_PX))
+    for r, c in ((a, a), (a, size - a - w), (size - a - w, a)):
+        marks[r : r + w, c : c + w] = True
+        clear[max(0, r - g) : r + w + g, max(0, c - g) : c + w + g] = True
+    return marks, clear
+
+
+def with_fiducials(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with the registration marks (``fiducial_marks``) and their cleared band."""
+    marks, clear = fiducial_marks(mask.shape[0])
+    out = mask.copy()
+    out[clear] = 0
+    out[marks] = 255
+    return out
+
+
+def candidate_pool(count: int, seed: int = 0, size: int = 512, patterns=POOL_PATTERNS, fiducials: bool = False) -> dict:
     """``count`` candidate masks, id ``<pattern>_<index>`` -> uint8 mask; patterns in the
     shares of ``POOL_WEIGHTS`` (1 for the others), each mask from its own seeded stream.
-    Masks that would print nothing at full dose (all below grey 60) are redrawn."""
+    Masks that would print nothing at full dose (all below grey 60) are redrawn, before
+    the registration marks are added (``fiducials``)."""
     w = np.array([POOL_WEIGHTS.get(p, 1.0) for p in patterns])
     n = np.floor(w / w.sum() * count).astype(int)
     n[np.argsort(-w)[: count - n.sum()]] += 1
@@ -183,7 +221,7 @@ def candidate_pool(count: int, seed: int = 0, size: int = 512, patterns=POOL_PAT
             m = gen(rng, size)
             while m.max() < 60:
                 m = gen(rng, size)
-            out[f"{p}_{i:03d}"] = m
+            out[f"{p}_{i:03d}"] = with_fiducials(m) if fiducials else m
     return out
 
 
@@ -366,12 +404,13 @@ def undecided_effects(diagnosis_dir) -> list[str]:
 
 def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS.default.pool,
                  draws: int = TRIAL_MASKS.default.draws, seed: int = TRIAL_MASKS.default.seed,
-                 size: int = TRIAL_MASKS.default.size, focus_weight: float = 1.0, compare: bool = True, progress: bool = True,
-                 device=None) -> dict:
+                 size: int = TRIAL_MASKS.default.size, fiducials: bool = TRIAL_MASKS.default.fiducials,
+                 focus_weight: float = 1.0, compare: bool = True, progress: bool = True, device=None) -> dict:
     """Choose ``count`` trial masks from a pool of ``pool`` candidates (see the module doc).
 
     ``model``: a calibration's params.yaml or a diagnosis folder (sequential design), or
-    None (before any print). ``prints``: registration folders of prints already made (their
+    None (before any print). ``fiducials``: the registration marks on every candidate
+    (``with_fiducials``), before their information is computed. ``prints``: registration folders of prints already made (their
     masks' information joins the prior). Returns a dict: masks (id -> uint8), design
     (Design), table (rows per chosen mask), sd (rows per parameter: prior, designed,
     random paper masks of the same count), focus, seconds.
@@ -394,7 +433,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
         fp = {p.name for e in focus_effects for p in EFFECTS[e].params}
         focus = [j for j, k in enumerate(names) if k in fp] or None
 
-    cands = candidate_pool(pool, seed, size)
+    cands = candidate_pool(pool, seed, size, fiducials=fiducials)
     bar = _bar(progress, len(cands), "information of the candidates")
     F = information(cands, params, U, device=device, progress=bar)
     start = None

@@ -156,12 +156,27 @@ def check_image_content(path, raw: np.ndarray, saturated_fraction: float = 0.02)
         raise InputError(path, "image has essentially no contrast")
 
 
-def write_tiff16(path, arr: np.ndarray) -> None:
+def write_tiff16(path, arr: np.ndarray, pixel_size_um: float | None = None, tags: str = "ome") -> None:
+    """A 16-bit TIFF; with ``pixel_size_um`` (the camera pixel at the sample) written as a
+    microscope's software writes it: ``tags`` "ome" (OME-XML PhysicalSizeX/Y, as
+    Bio-Formats and most acquisition software) or "imagej" (resolution tags in pixels per
+    micron with ImageJ's ``unit``)."""
     import tifffile
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tifffile.imwrite(path, np.asarray(arr, dtype=np.uint16), compression=None)
+    arr = np.asarray(arr, dtype=np.uint16)
+    if pixel_size_um is None:
+        tifffile.imwrite(path, arr, compression=None)
+    elif tags == "ome":
+        tifffile.imwrite(path, arr, compression=None, ome=True,
+                         metadata={"PhysicalSizeX": float(pixel_size_um), "PhysicalSizeXUnit": "µm",
+                                   "PhysicalSizeY": float(pixel_size_um), "PhysicalSizeYUnit": "µm"})
+    elif tags == "imagej":
+        tifffile.imwrite(path, arr, compression=None, imagej=True, resolution=(1 / pixel_size_um, 1 / pixel_size_um),
+                         metadata={"unit": "um"})
+    else:
+        raise ValueError(f"tags must be 'ome' or 'imagej', not {tags!r}")
 
 
 # ---------------------------------------------------------------------- YAML / TSV
@@ -288,6 +303,14 @@ def _rotation(path, key, v) -> tuple[float, float]:
     return lo, hi
 
 
+def _tolerance(path, key, v) -> float:
+    """A relative tolerance above 0 and at most 0.5 (a share, not a percentage)."""
+    t = _number(path, key, v)
+    if t > 0.5:
+        raise InputError(path, f"field {key!r} is a share (0.01 means 1 %), at most 0.5, found {v!r}")
+    return t
+
+
 def _factors(path, key, v) -> dict:
     if not isinstance(v, dict):
         raise InputError(path, f"field {key!r} must map names to exposure factors, found {v!r}")
@@ -303,6 +326,7 @@ BATCH_FIELDS = {
     "notes": (False, _text),
     "camera_offset_adu": (False, lambda path, key, v: _number(path, key, v, strict=False)),
     "image_pixel_size_um": (False, _number),  # the camera pixel at the sample
+    "image_pixel_size_tolerance": (False, _tolerance),  # how far (relative) any stated camera pixel size may be off
     "image_rotation_deg": (False, _rotation),
     "dense_level": (False, _number),  # fully cured polymer's fluorescence over the background (registration)
     "layer_um": (False, _number),
@@ -324,6 +348,7 @@ class BatchMeta:
     notes: str = ""
     camera_offset_adu: float = 0.0
     image_pixel_size_um: float | None = None
+    image_pixel_size_tolerance: float | None = None
     image_rotation_deg: tuple[float, float] | None = None
     dense_level: float | None = None
     layer_um: float | None = None

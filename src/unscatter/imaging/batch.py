@@ -15,9 +15,9 @@ from scipy import ndimage
 from ..settings import REGISTRATION
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
-from .priors import rotation_range, scale_range
+from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
-                   merged_features, refine_ecc, self_similar_moves, size_spread, to_design)
+                   merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design)
 from .template import PrintTemplate, blurred_mask, fit_template, ncc
 
 log = logging.getLogger(__name__)
@@ -58,6 +58,8 @@ class Settings:
     max_pose_sd: float = 0.5  # design px: a pose known worse than this (1 sd, RMS over the field) fails
     batch_range_min: int = 8  # determined prints needed to bound the poses of ambiguous ones by the batch's
     batch_range_gaps: float = 3.0  # ... range, widened by this many mean gaps (batch_range)
+    rotation_mads: float = 4.0  # a print turned this many robust spreads from the batch's median rotation fails ...
+    min_rotation_spread: float = 0.5  # ... the spread (deg) at least this (batch_rotation)
     max_size_sd: float = 1.5  # design px: a pose whose spread from its features' sizes is larger fails (a bound on a
     # systematic error, not a noise level: at 1.5 px the print may be as far off as 'silently wrong' means)
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
@@ -220,6 +222,21 @@ def batch_range(poses: list[dict], s: Settings):
     return (rlo, rhi), (float(np.exp(slo)), float(np.exp(shi)))
 
 
+def batch_rotation(rotations: list, s: Settings) -> tuple[float, float] | None:
+    """(median, limit) of the rotations (deg) of a batch's determined prints: a print
+    turned further than ``limit`` from the median is an outlier (a star one spoke off
+    that the image preferred, a grating turned onto its own lines), not how this
+    microscope images. The limit is ``rotation_mads`` times the rotations' robust spread
+    (1.4826 MAD, at least ``min_rotation_spread`` deg): for rotations drawn uniformly
+    within +-a (a sample placed by hand) about 3 a, for one fixed rotation 2 deg. None with fewer than ``batch_range_min`` prints."""
+    if len(rotations) < s.batch_range_min:
+        return None
+    v = np.asarray(rotations, float)
+    centre = float(np.median(v))
+    spread = max(s.min_rotation_spread, 1.4826 * float(np.median(np.abs(v - centre))))
+    return centre, s.rotation_mads * spread
+
+
 def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     """The batch's scale when one magnification imaged it: (median log scale, its robust
     spread, at least ``min_scale_sd``) over ``fits`` (prints whose features' places fix
@@ -254,6 +271,47 @@ def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
     mad = 1.4826 * np.median(np.abs(e - centre), axis=0)  # robust: a partial print among them does not set it
     aniso = float(max(s.min_size_sd, np.hypot(mad[1], mad[2]) / np.sqrt(2)))
     return tuple(float(v) for v in centre), (float(max(s.min_size_sd, mad[0])), aniso, aniso)
+
+
+def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
+    """The scale priors from stated camera pixel sizes that the batch can use (id -> (log
+    scale, sd)), and a note for the prints that would need one when it cannot.
+    ``priors``: id -> (log scale, sd) from ``scale_prior`` or None; ``placed``: id ->
+    fitted log scale of the prints whose features fix their pose.
+
+    What metadata states well is the ratio between images (the software knows each
+    image's zoom); its absolute value is a calibration that may be off (a stale one,
+    another camera adapter) and the registration's own scale may be biased by the
+    template's sizes (anisotropic scatter) by a few tenths of a per cent. So, as
+    ``batch_scale`` does for one magnification, the placed prints measure the stated
+    sizes: with at least ``scale_min_prints`` of them, the stated log scales are shifted
+    by the median of (fitted - stated), and a print's scale is known within the robust
+    spread of those differences (at least ``min_scale_sd``), what a further print's scale
+    may be off by. With fewer, the stated sizes are used as stated, within their
+    tolerance (two sd), unless those few contradict them by more than the tolerance in
+    the median: then none is used, and the prints that would need one fail as
+    undetermined rather than be held to a scale the batch contradicts."""
+    priors = {k: v for k, v in priors.items() if v is not None}
+    d = np.array([placed[k] - priors[k][0] for k in placed if k in priors])
+    if not priors:
+        return {}, ""
+    if len(d) >= s.scale_min_prints:
+        shift = float(np.median(d))
+        sd = max(s.min_scale_sd, 1.4826 * float(np.median(np.abs(d - shift))))
+        log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (spread %.2f %%): "
+                 "the stated scales shifted by that, each known within %.2f %%", len(d), 100 * shift,
+                 100 * 1.4826 * float(np.median(np.abs(d - shift))), 100 * sd)
+        return {k: (v[0] + shift, sd) for k, v in priors.items()}, ""
+    tol = float(np.median([2 * v[1] for v in priors.values()]))
+    if not len(d) or abs(float(np.median(d))) <= tol:
+        log.info("stated camera pixel size: scale known within %.2f %% (its tolerance)%s", 100 * tol,
+                 f", checked against {len(d)} prints whose features fix their scale" if len(d) else ", nothing to check it against")
+        return priors, ""
+    off = float(np.median(d))
+    log.warning("the stated camera pixel size is contradicted by %d prints whose features fix their scale: they are %+.2f %% "
+                "off it, more than its tolerance; it is not used", len(d), 100 * off)
+    return {}, (f"; the stated camera pixel size, which would fix it, is not used: the prints whose features fix their "
+                f"scale are {100 * off:+.2f} % off it, more than its tolerance")
 
 
 def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s: Settings, source: Path) -> tuple[float, float]:
@@ -533,23 +591,53 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             empty.add(mid)
 
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
-    choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, scales[mid][0]), todo)))
+    def counted(mid) -> tuple:
+        """The scales within which a pose counts (``choose_pose``): the searched range;
+        around a stated pixel size about 10 % either side, for a print whose scale its
+        features' size sets may be that far off until step 5c holds it."""
+        lo, hi = scales[mid][0]
+        return (lo, hi) if scale_prior(*scales[mid]) is None else (min(lo, hi / 1.1), max(hi, lo * 1.1))
+
+    choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, counted(mid)), todo)))
     # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
-    known = [pose_of(ch.fit.M, grid, smooth[mid].shape) for mid, ch in choices.items() if determined(ch, s)]
-    limits = batch_range(known, s)
+    known = {mid: pose_of(ch.fit.M, grid, smooth[mid].shape) for mid, ch in choices.items() if determined(ch, s)}
+    one_rotation = batch_rotation([p["rotation_deg"] for p in known.values()], s)
+
+    def off_rotation(M) -> bool:
+        return one_rotation is not None and abs(pose_of(M, grid, (1, 1))["rotation_deg"] - one_rotation[0]) > one_rotation[1]
+
+    limits = batch_range([p for mid, p in known.items() if not off_rotation(choices[mid].fit.M)], s)
     if limits is not None:
         (rlo, rhi), (slo, shi) = limits
-        redo = [mid for mid, ch in choices.items() if ch.evidence < s.min_evidence]
+        # and a print turned far from the batch's others (a star one spoke off that the
+        # image happened to prefer)
+        redo = [mid for mid, ch in choices.items() if ch.evidence < s.min_evidence or off_rotation(ch.fit.M)]
 
         def again(mid):
             ch = choices[mid]
             rot = (max(rlo, s.rotation_deg[0]), min(rhi, s.rotation_deg[1]))
-            sc = (max(slo, scales[mid][0][0]), min(shi, scales[mid][0][1]))
+            sc = (max(slo, counted(mid)[0]), min(shi, counted(mid)[1]))
             if rot[0] > rot[1] or sc[0] > sc[1]:
                 return ch
-            return choose_pose(masks[mid], smooth[mid], [ch.fit.M, ch.rival] + list(starts[mid][0]), x, s, design_px, sc, rot)
+            tried = [M for M in (ch.fit.M, ch.rival) if M is not None]
+            if one_rotation is not None:  # the pose turned about the mask's centre of mass to the batch's rotation
+                turn = one_rotation[0] - pose_of(ch.fit.M, grid, (1, 1))["rotation_deg"]
+                cy, cx = (v + MARGIN for v in ndimage.center_of_mass(masks[mid].astype(np.float64)))
+                for t in (turn, -turn):
+                    tried.append((h3(ch.fit.M) @ h3(similarity(t, 1.0, (cx, cy), (cx, cy))))[:2])
+            new = choose_pose(masks[mid], smooth[mid], tried + list(starts[mid][0]), x, s, design_px, sc, rot)
+            if ch.evidence >= s.min_evidence:  # chosen again only for its rotation: kept where the image clearly
+                # prefers it to the pose within the batch's range (it then fails), never forced into the range
+                tmpl = PrintTemplate(design_px, MARGIN)
+                B = tmpl.exposure(tmpl.padded(masks[mid]), x)
+                z = evidence(smooth[mid], (ch.fit, predicted_print(tmpl, B, x, ch.fit)), (new.fit, predicted_print(tmpl, B, x, new.fit)))
+                if z >= s.min_evidence:
+                    log.info("%s: turned %.1f deg off the batch's rotation, and the image prefers that pose (z = %.1f) to the "
+                             "one within the batch's range", mid, pose_of(ch.fit.M, grid, (1, 1))["rotation_deg"] - one_rotation[0], z)
+                    return ch
+            return new
 
         for mid, ch in zip(redo, pool.map(again, redo)):
             log.info("%s: chosen again within the batch's poses (rotation %.1f..%.1f deg, scale %.3f..%.3f): evidence %.1f -> %.1f",
@@ -566,7 +654,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         return T, size_spread(T, s.mode)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
-    placed = [choices[mid].fit for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
+    placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
+    placed = [choices[mid].fit for mid in placed_ids]
     centre, edge_sd = size_error(placed, s)
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
@@ -575,6 +664,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if one_scale is not None:
         log.info("one magnification: scale %.4f +- %.2f %% (from %d prints whose pose their features' places fix)",
                  np.exp(one_scale[0]), 100 * one_scale[1], len(placed))
+
+    stated, stated_note = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo},
+                                        {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}, s)
 
     def off_scale(M) -> bool:
         return one_scale is not None and abs(log_scale(M) - one_scale[0]) > s.scale_sigmas * one_scale[1]
@@ -588,23 +680,48 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         (``batch_scale``) the scale of such a print is held to the batch's, and so is the
         scale of a print whose pose is uncertain or whose scale is off the batch's (a
         grating whose lines cure wider than the template predicts pulls its scale off);
-        a print that fixes its own pose keeps it, without the batch's spread."""
+        a print that fixes its own pose keeps it, without the batch's spread.
+
+        A stated camera pixel size (``stated_scales``) holds the scale in the same way,
+        but only for a print whose scale trades against its features' size (its size
+        spread over the limit) while its data nearly fix the rest of its pose (its pose
+        spread within 1.5 times the limit, which the scale's trade inflates for one
+        block; a grating loose along its lines stays failed), and only
+        where it is known more closely than the batch's one magnification; a print that
+        passes without it is not touched. It counts in the pose's spread, so it lets a
+        print pass only when it is tight enough (about 0.15 % for a print of 512 px)."""
         ch, T = choices[mid], spreads[mid][0]
         merged = merged_features(T, full.padded(masks[mid]))
         sd = None if merged else edge_sd
         sized = spreads[mid][1] > s.max_pose_sd
         edges = not merged and sized and len(placed) >= s.size_min_prints
         scaled = one_scale is not None and (merged or sized or ch.fit.pose_sd > s.max_pose_sd or off_scale(ch.fit.M))
-        if not (edges or scaled):
-            return ch.fit, T, sd, None
         B = full.exposure(full.padded(masks[mid]), x)
-        f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
-                   scale_prior=one_scale if scaled else None)
-        f.converged = f.converged and ch.fit.converged
-        return f, predicted_print(full, B, x, f), sd, one_scale[1] if scaled else None
 
-    for mid, (f, T, sd, ssd) in zip(todo, pool.map(held, todo)):
-        f.size_sd = size_spread(T, s.mode, sd, ssd)
+        def fit(scale_prior):
+            f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
+                       scale_prior=scale_prior)
+            f.converged = f.converged and ch.fit.converged
+            T = predicted_print(full, B, x, f)
+            f.size_sd = size_spread(T, s.mode, sd, scale_prior[1] if scale_prior else None)
+            return f
+
+        if edges or scaled:
+            f = fit(one_scale if scaled else None)
+        else:
+            f = ch.fit
+            f.size_sd = size_spread(T, s.mode, sd)
+        p = stated.get(mid)
+        if (p is not None and (one_scale is None or p[1] < one_scale[1])
+                and f.pose_sd <= 1.5 * s.max_pose_sd and f.size_sd > s.max_size_sd):
+            g = fit(p)
+            if max(g.pose_sd / s.max_pose_sd, g.size_sd / s.max_size_sd) < max(f.pose_sd / s.max_pose_sd, f.size_sd / s.max_size_sd):
+                log.info("%s: held to its stated camera pixel size: pose spread %.2f -> %.2f px, size spread %.2f -> %.2f px",
+                         mid, f.pose_sd, g.pose_sd, f.size_sd, g.size_sd)
+                f = g
+        return f
+
+    for mid, f in zip(todo, pool.map(held, todo)):
         choices[mid].fit = f
     del spreads
 
@@ -647,10 +764,19 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if not s.rotation_deg[0] - 1 <= pose["rotation_deg"] <= s.rotation_deg[1] + 1:
             reasons.append(f"rotation {pose['rotation_deg']:.1f} deg outside {tuple(s.rotation_deg)}")
         lo, hi = scales[mid][0]
-        if not lo <= pose["scale"] <= hi:
-            reasons.append(f"scale {pose['scale']:.3f} outside {lo:.3f}..{hi:.3f} ({scales[mid][1]})")
+        if mid in stated:  # a stated scale, as the batch measured it (stated_scales)
+            c, sd = stated[mid]
+            if abs(log_scale(ch.fit.M) - c) > s.scale_sigmas * sd:
+                reasons.append(f"scale {pose['scale']:.4f} off its stated {np.exp(c):.4f} ({scales[mid][1]}; as the batch's "
+                               f"prints measure it) by more than {s.scale_sigmas:g} times its spread ({100 * sd:.2f} %)")
+        elif not lo <= pose["scale"] <= hi:
+            reasons.append(f"scale {pose['scale']:.4f} outside {lo:.4f}..{hi:.4f} ({scales[mid][1]})")
         if score < s.min_score:
             reasons.append(f"registration score {score:.2f} below {s.min_score}")
+        if off_rotation(ch.fit.M):
+            reasons.append(f"rotation {pose['rotation_deg']:.1f} deg off the batch's {one_rotation[0]:.1f} by more than "
+                           f"{one_rotation[1]:.1f} deg ({s.rotation_mads:g} times the spread of its prints whose pose "
+                           f"their features fix): one microscope imaged the batch")
         if ch.symmetry is not None:
             reasons.append(f"ambiguous: the mask maps onto itself rotated by {ch.symmetry:.1f} deg, and the pose so turned "
                            f"({pose_distance(ch.rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px away) lies within "
@@ -665,7 +791,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if not ch.fit.size_sd <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
-                           f"(more than {s.max_size_sd})")
+                           f"(more than {s.max_size_sd}){stated_note}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "

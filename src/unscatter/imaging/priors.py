@@ -11,13 +11,22 @@ The camera pixel size at the sample comes from, in this order:
 
 Resolution in pixels per inch is ignored: it is what image programs write by default
 (72, 96, 300 dpi) and says nothing about a microscope. The scale (image px per mask px)
-is then pixel_size_um / image_pixel_size_um, searched within ``scale_tolerance``.
+is then pixel_size_um / image_pixel_size_um, searched within the tolerance: batch.yaml
+``image_pixel_size_tolerance`` (a share, 0.01 = 1 %: what a calibration with a stage
+micrometer gives) or, without it, ``Settings.scale_tolerance`` (5 %: an objective's
+nominal magnification). Within that range the scale is also a prior (``scale_prior``):
+it holds the scale of a print whose features cannot fix it (one dot, one block) as the
+batch's one magnification does, so a stated tolerance of a few tenths of a per cent lets
+such a print register, and the default 5 % does not. A stated pixel size that the
+prints whose features fix their scale contradict is not used (registration's step 5c).
 """
 
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
 from pathlib import Path
+
+import numpy as np
 
 from ..io import InputError
 
@@ -83,6 +92,7 @@ def scale_range(meta: dict, image_path, default: tuple, tolerance: float, source
     """The searched scale (image px per mask px) and where it came from."""
     mask_um = meta.get("pixel_size_um")
     cam = meta.get("image_pixel_size_um")
+    tolerance = meta.get("image_pixel_size_tolerance") or tolerance
     where = "batch.yaml image_pixel_size_um"
     if cam is None:
         cam, where = image_pixel_size_um(image_path)
@@ -93,5 +103,13 @@ def scale_range(meta: dict, image_path, default: tuple, tolerance: float, source
     if isinstance(mask_um, bool) or not isinstance(mask_um, (int, float)) or not mask_um > 0:
         raise InputError(source, "pixel_size_um (the mask pixel at the sample) is needed with a camera pixel size")
     s = float(mask_um) / float(cam)
-    return (s / (1 + tolerance), s * (1 + tolerance)), where
+    return (s / (1 + tolerance), s * (1 + tolerance)), f"{where}, within {100 * tolerance:g} %"
 
+
+def scale_prior(scale_range: tuple, where: str) -> tuple[float, float] | None:
+    """(log scale, its standard deviation) from a stated camera pixel size, the tolerance
+    either side taken as two standard deviations; None when the scale was searched."""
+    if where == "search":
+        return None
+    lo, hi = np.log(scale_range[0]), np.log(scale_range[1])
+    return float(0.5 * (lo + hi)), float(0.25 * (hi - lo))

@@ -33,6 +33,10 @@ RANGES = {
     "background_tilt": (0.0, 0.5),
     "staining": (0.0, 0.25),
     "staining_length_px": (60.0, 250.0),
+    "pixel_size_tolerance": (0.001, 0.01),  # (log-uniform) a stated camera pixel size calibrated with a stage micrometer
+    "pixel_size_error": (-0.03, 0.03),  # an objective's nominal magnification, not calibrated
+    "stale_factor": (2.0, 5.0),  # a stale calibration: off by this many times its stated tolerance
+    "zoom_jitter": (0.0, 0.001),  # relative sd of a zoom's repeatability (per image)
     # printer
     "sigma_um": (6.0, 25.0),
     "tail_fraction": (0.0, 0.4),
@@ -123,6 +127,32 @@ def _microscope(rng: np.random.Generator) -> dict:
     return m
 
 
+def _pixel_size_metadata(rng: np.random.Generator, m: dict) -> dict | None:
+    """What a lab states about its camera pixel at the sample (``stated_pixel_um``): one
+    lab in three nothing; else per image in OME-XML or ImageJ tags (a 16-bit TIFF) or, for
+    one objective, once in batch.yaml. Calibrated with a stage micrometer (a tolerance
+    stated, the error within half of it), the objective's nominal value (no tolerance,
+    a few per cent off) or, one lab in ten of those that state something, a stale
+    calibration off by several times the tolerance it states. Drawn after everything else,
+    so a seed's labs are the same with metadata as without."""
+    lo, hi = m["scale"]
+    one = hi / lo < 1.005  # one objective: only refocusing changes the scale
+    where = (["ome", "imagej"] if m["format"] == "tif16" else []) + (["batch"] if one else [])
+    if rng.random() < 1 / 3 or not where:
+        return None
+    kind = rng.random()
+    tol = _log_u(rng, "pixel_size_tolerance")
+    if kind < 0.45:
+        error, stated = float(rng.uniform(-0.5, 0.5)) * tol, tol
+    elif kind < 0.9:
+        error, stated = _u(rng, "pixel_size_error"), None
+    else:
+        error, stated = float(rng.choice([-1, 1])) * _u(rng, "stale_factor") * tol, tol
+    # a zoom's repeatability, or refocusing under one objective (which no metadata knows)
+    jitter = float(np.log(hi / lo) / 2) if one else _u(rng, "zoom_jitter")
+    return dict(where=str(rng.choice(where)), error=error, tolerance=stated, jitter=jitter)
+
+
 def _printer(rng: np.random.Generator) -> dict:
     threshold = _u(rng, "threshold")
     hotspot = None
@@ -160,7 +190,9 @@ def random_lab(rng: np.random.Generator) -> dict:
     """A lab drawn over wide ranges (``RANGES``): overrides of the lab's default config
     (``microscope`` and ``printer`` sections). The design field stays in view at every
     pose the lab can draw."""
-    return _rounded(dict(microscope=_microscope(rng), printer=_printer(rng)))
+    m, p = _microscope(rng), _printer(rng)
+    m["pixel_size_metadata"] = _pixel_size_metadata(rng, _rounded(m))
+    return _rounded(dict(microscope=m, printer=p))
 
 
 def describe_lab(over: dict) -> str:
@@ -178,6 +210,10 @@ def describe_lab(over: dict) -> str:
         parts.append(f"tilt {m['background_tilt']:.2f}")
     if m.get("staining"):
         parts.append(f"stain {m['staining']['variation']:.2f}/{m['staining']['length_px']:.0f}px")
+    md = m.get("pixel_size_metadata")
+    if md:
+        tol = f"+-{100 * md['tolerance']:.2g} %" if md.get("tolerance") else "no tolerance"
+        parts.append(f"px size in {md['where']} {100 * md['error']:+.2g} % ({tol})")
     k, c = p["kernel"], p["cure"]
     ht = k.get("heavy_tail")
     parts += [f"| sigma {k['sigma_um']:.1f} um", f"tail {ht['fraction']:.2f}/{ht['length_um']:.0f} um" if ht else "no tail",

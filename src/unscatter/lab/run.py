@@ -37,11 +37,32 @@ def batch_yaml(cfg: dict, exposures: dict, source) -> dict:
     out = dict(meta)
     if mic.get("declare_offset", True):
         out["camera_offset_adu"] = mic["offset_adu"] / (256 if mic.get("format") == "png8" else 1)
+    md = mic.get("pixel_size_metadata")
+    if md:
+        if md["where"] == "batch":  # one objective: the camera pixel at the sample, as calibrated
+            lo, hi = mic["scale"]
+            out["image_pixel_size_um"] = float(f"{out['pixel_size_um'] / np.sqrt(lo * hi) * (1 + md['error']):.5g}")
+        if md.get("tolerance"):
+            out["image_pixel_size_tolerance"] = md["tolerance"]
     out["notes"] = f"virtual lab, seed {cfg['seed']}"
     if any(v != 1.0 for v in exposures.values()):
         out["notes"] += "; some masks printed at other exposures: see job.tsv"
     check_batch_meta(out, source)
     return out
+
+
+def stated_pixel_um(mic: dict, mask_um: float, scale: float, seed: int, mask_id: str) -> float | None:
+    """The camera pixel at the sample that the image's own metadata states (microscope
+    ``pixel_size_metadata`` with ``where`` "ome" or "imagej"), or None. The acquisition
+    software knows the zoom of each image: the stated size is the true one, mask_um /
+    scale, off by the lab's calibration ``error`` (one for all images) and by the
+    zoom's repeatability ``jitter`` (relative sd, per image; its own random stream, so
+    the images are those of the same lab without metadata)."""
+    md = mic.get("pixel_size_metadata")
+    if not md or md["where"] not in ("ome", "imagej") or mic.get("format", "tif16") != "tif16":
+        return None
+    jit = float(md.get("jitter", 0.0)) * float(np.random.default_rng([int(seed), zlib.crc32(mask_id.encode()), 1]).standard_normal())
+    return float(f"{mask_um / scale * (1 + md['error']) * (1 + jit):.5g}")
 
 
 def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progress=True,
@@ -89,11 +110,13 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
             rho = printer.density(mask, rng)
             truth = printer.crop(rho) >= level
             img, pose, M = image_print(rho, printer.pad, size, mic, rng)
+            cam_um = stated_pixel_um(mic, float(meta["pixel_size_um"]), pose["scale"], cfg["seed"], mid)
             shutil.copyfile(path, batch / "masks" / f"{mid}.png")
             if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
                 write_png(batch / "images" / f"{mid}.png", (img >> 8).astype(np.uint8))
             else:
-                write_tiff16(batch / "images" / f"{mid}.tif", img)
+                write_tiff16(batch / "images" / f"{mid}.tif", img, pixel_size_um=cam_um,
+                             tags=(mic.get("pixel_size_metadata") or {}).get("where", "ome"))
             write_png(truth_out / "prints" / f"{mid}.png", truth)
             np.save(truth_out / "density" / f"{mid}.npy", printer.crop(rho).astype(np.float32))
             rows.append(dict(id=mid, exposure=exposures.get(mid, 1.0), **pose, m00=M[0, 0], m01=M[0, 1], m02=M[0, 2], m10=M[1, 0], m11=M[1, 1], m12=M[1, 2],
