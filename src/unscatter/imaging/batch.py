@@ -698,12 +698,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         scaled = one_scale is not None and (merged or sized or ch.fit.pose_sd > s.max_pose_sd or off_scale(ch.fit.M))
         B = full.exposure(full.padded(masks[mid]), x)
 
-        def fit(scale_prior):
+        def fit(held_at):  # (log scale, sd) or None
             f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
-                       scale_prior=scale_prior)
+                       scale_prior=held_at)
             f.converged = f.converged and ch.fit.converged
-            T = predicted_print(full, B, x, f)
-            f.size_sd = size_spread(T, s.mode, sd, scale_prior[1] if scale_prior else None)
+            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None)
             return f
 
         if edges or scaled:

@@ -17,8 +17,9 @@ micrometer gives) or, without it, ``Settings.scale_tolerance`` (5 %: an objectiv
 nominal magnification). Within that range the scale is also a prior (``scale_prior``):
 it holds the scale of a print whose features cannot fix it (one dot, one block) as the
 batch's one magnification does, so a stated tolerance of a few tenths of a per cent lets
-such a print register, and the default 5 % does not. A stated pixel size that the
-prints whose features fix their scale contradict is not used (registration's step 5c).
+such a print register, and the default 5 % does not. The prints whose features fix
+their scale check a stated size: six or more correct it, fewer that contradict it drop
+it (``batch.stated_scales``).
 """
 
 from __future__ import annotations
