@@ -295,19 +295,18 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
     d = np.array([placed[k] - priors[k][0] for k in placed if k in priors])
     if not priors:
         return {}, ""
+    off = float(np.median(d)) if len(d) else 0.0
     if len(d) >= s.scale_min_prints:
-        shift = float(np.median(d))
-        sd = max(s.min_scale_sd, 1.4826 * float(np.median(np.abs(d - shift))))
+        spread = 1.4826 * float(np.median(np.abs(d - off)))
+        sd = max(s.min_scale_sd, spread)
         log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (spread %.2f %%): "
-                 "the stated scales shifted by that, each known within %.2f %%", len(d), 100 * shift,
-                 100 * 1.4826 * float(np.median(np.abs(d - shift))), 100 * sd)
-        return {k: (v[0] + shift, sd) for k, v in priors.items()}, ""
+                 "the stated scales shifted by that, each known within %.2f %%", len(d), 100 * off, 100 * spread, 100 * sd)
+        return {k: (v[0] + off, sd) for k, v in priors.items()}, ""
     tol = float(np.median([2 * v[1] for v in priors.values()]))
-    if not len(d) or abs(float(np.median(d))) <= tol:
+    if abs(off) <= tol:
         log.info("stated camera pixel size: scale known within %.2f %% (its tolerance)%s", 100 * tol,
                  f", checked against {len(d)} prints whose features fix their scale" if len(d) else ", nothing to check it against")
         return priors, ""
-    off = float(np.median(d))
     log.warning("the stated camera pixel size is contradicted by %d prints whose features fix their scale: they are %+.2f %% "
                 "off it, more than its tolerance; it is not used", len(d), 100 * off)
     return {}, (f"; the stated camera pixel size, which would fix it, is not used: the prints whose features fix their "
@@ -602,6 +601,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
+    full = PrintTemplate(design_px, MARGIN)
     known = {mid: pose_of(ch.fit.M, grid, smooth[mid].shape) for mid, ch in choices.items() if determined(ch, s)}
     one_rotation = batch_rotation([p["rotation_deg"] for p in known.values()], s)
 
@@ -630,9 +630,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             new = choose_pose(masks[mid], smooth[mid], tried + list(starts[mid][0]), x, s, design_px, sc, rot)
             if ch.evidence >= s.min_evidence:  # chosen again only for its rotation: kept where the image clearly
                 # prefers it to the pose within the batch's range (it then fails), never forced into the range
-                tmpl = PrintTemplate(design_px, MARGIN)
-                B = tmpl.exposure(tmpl.padded(masks[mid]), x)
-                z = evidence(smooth[mid], (ch.fit, predicted_print(tmpl, B, x, ch.fit)), (new.fit, predicted_print(tmpl, B, x, new.fit)))
+                B = full.exposure(full.padded(masks[mid]), x)
+                z = evidence(smooth[mid], (ch.fit, predicted_print(full, B, x, ch.fit)), (new.fit, predicted_print(full, B, x, new.fit)))
                 if z >= s.min_evidence:
                     log.info("%s: turned %.1f deg off the batch's rotation, and the image prefers that pose (z = %.1f) to the "
                              "one within the batch's range", mid, pose_of(ch.fit.M, grid, (1, 1))["rotation_deg"] - one_rotation[0], z)
@@ -644,7 +643,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                      mid, rlo, rhi, slo, shi, choices[mid].evidence, ch.evidence)
             choices[mid] = ch
     p = dict(zip(PrintTemplate.NAMES, (float(v) for v in x)))
-    full = PrintTemplate(design_px, MARGIN)
 
     # 5c. how far a print's pose rests on the size of its features, and how well this
     # batch's template predicts sizes: the edge offsets fitted on the prints whose features'
@@ -696,9 +694,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         sized = spreads[mid][1] > s.max_pose_sd
         edges = not merged and sized and len(placed) >= s.size_min_prints
         scaled = one_scale is not None and (merged or sized or ch.fit.pose_sd > s.max_pose_sd or off_scale(ch.fit.M))
-        B = full.exposure(full.padded(masks[mid]), x)
+        B = None  # the mask's scattered dose, made only for a print that is refitted
 
         def fit(held_at):  # (log scale, sd) or None
+            nonlocal B
+            if B is None:
+                B = full.exposure(full.padded(masks[mid]), x)
             f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
                        scale_prior=held_at)
             f.converged = f.converged and ch.fit.converged
