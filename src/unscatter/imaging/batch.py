@@ -109,7 +109,10 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
 def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple,
                 rotation: tuple | None = None) -> PoseChoice:
     """Refine every start, add the moves under which the print maps onto itself, and keep
-    the pose the image prefers over every distinct rival (``pose`` module doc).
+    the pose the image prefers over every distinct rival (``pose`` module doc). Two poses
+    that fit alike are rivals only if a barrier lies between them; where the pose halfway
+    between fits clearly better than both (a grating's pitch either side of a pose that no
+    start reached), that pose is refined and competes.
 
     ``scale`` and ``rotation`` (default ``s.rotation_deg``) bound the poses that count: a
     pose outside them is no rival."""
@@ -120,9 +123,17 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     B_full = full.exposure(full.padded(mask), x)
     n = full.shape[0]
 
-    def coarse(M):  # half resolution: every start and every move
-        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False)
-        return f, predicted_print(half, B_half, x, f)
+    def coarse(M, known=()):  # half resolution: every start and every move; None where it joins a known pose
+        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False, known=[g[0].M for g in known])
+        return None if f.joined is not None else (f, predicted_print(half, B_half, x, f))
+
+    def coarse_all(Ms, known=()):
+        out = []
+        for M in Ms:
+            f = coarse(M, list(known) + out)
+            if f is not None:
+                out.append(f)
+        return out
 
     def fine(f):  # full resolution: the poses still in the running
         f = refine(img, f[0], full, B_full, x, s.mode, iters=12, tol=0.01)
@@ -149,12 +160,13 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
                 best = f
         return best
 
-    fits = dedupe([coarse(M) for M in starts])
+    found = coarse_all(starts)
+    fits = dedupe(found)
     fits = [f for f in fits if plausible(f)] or fits[:1]
     best = tournament(fits, 2)
     moves = self_similar_moves(predicted_print(full, B_full, x, best[0]), rotation_span=max(10.0, s.rotation_deg[1] - s.rotation_deg[0]))
-    fits = dedupe([best] + [f for f in fits if f is not best] + [f for f in (coarse((h3(best[0].M) @ S)[:2]) for S in moves)
-                                                                 if plausible(f)])
+    fits = dedupe([best] + [f for f in fits if f is not best]
+                  + [f for f in coarse_all([(h3(best[0].M) @ S)[:2] for S in moves], found) if plausible(f)])
     best = tournament(fits, 2)
     # rivals clearly worse at half resolution are settled; the rest are compared at full
     close = [f for f in fits if f is not best and pose_distance(f[0].M, best[0].M, n, MARGIN) > s.distinct_px
@@ -162,22 +174,32 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     best = fine(best)
     z_min, rival = float("inf"), None
 
-    def separated(a, b):
-        """Whether a barrier lies between two poses: the pose halfway between them (the
-        nuisance numbers too) fits clearly worse than the better one. A grating's half
-        pitch or a star's half spoke does; a scale traded against the print's dose along
-        one valley does not."""
+    def halfway(a, b):
+        """The pose halfway between two poses (the nuisance numbers too), and how much
+        worse it fits than the better one (``evidence``). A barrier lies between them when
+        it fits clearly worse: a grating's half pitch or a star's half spoke does; a scale
+        traded against the print's dose along one valley does not. It fits clearly better
+        when the two are a grating's pitch either side of a pose that no start reached."""
         mid = Fit(0.5 * (a[0].M + b[0].M), 0.5 * (a[0].gain + b[0].gain), 0.5 * (a[0].offset + b[0].offset),
                   0.5 * (a[0].q + b[0].q), a[0].sigma, a[0].pose_sd, True, 0)
-        return evidence(img, a, (mid, predicted_print(full, B_full, x, mid))) >= s.min_evidence
-    for f in (fine(f) for f in close):
+        return mid, evidence(img, a, (mid, predicted_print(full, B_full, x, mid)))
+
+    pending, between = [fine(f) for f in close], 0
+    while pending:
+        f = pending.pop(0)
         if pose_distance(f[0].M, best[0].M, n, MARGIN) <= s.distinct_px:
             continue  # it came back to the same pose at full resolution
         z = evidence(img, best, f)
         if z < 0:
             best, f, z = f, best, -z
-        if z < s.min_evidence and not separated(best, f):
-            continue  # one valley with the best pose, not a second pose: the pose spread covers it
+        if z < s.min_evidence:
+            mid, z_mid = halfway(best, f)
+            if z_mid <= -s.min_evidence and between < 2:  # the pose between them fits clearly better: refined, it competes
+                between += 1
+                pending.append(fine((mid, None)))
+                continue
+            if z_mid < s.min_evidence:
+                continue  # one valley with the best pose, not a second pose: the pose spread covers it
         if z < z_min:
             z_min, rival = z, f[0].M
     # a mask that maps onto itself rotated (a Siemens star by a spoke pair) leaves the
@@ -413,7 +435,7 @@ def imaged_peak(mask: np.ndarray, blur: float) -> float:
 
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
     """The print template of one print: the batch's numbers with the print's own."""
-    return print_template(tmpl, B, x, fit.q)[0]
+    return print_template(tmpl, B, x, fit.q, derivatives=False)[0]
 
 
 def smoothing_px(scale: float) -> float:
@@ -702,7 +724,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 B = full.exposure(full.padded(masks[mid]), x)
             f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
                        scale_prior=held_at)
-            f.converged = f.converged and ch.fit.converged
+            # QC asks whether the chosen pose converged; held to a scale, the refit answers for
+            # itself: the free fit may not have only because it slid along the scale that its
+            # features' sizes trade against, which the scale now holds
+            f.converged = f.converged if held_at is not None else ch.fit.converged
             f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None)
             return f
 
@@ -722,7 +747,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         return f
 
     for mid, f in zip(todo, pool.map(held, todo)):
-        choices[mid].fit = f
+        choices[mid].fit, choices[mid].converged = f, f.converged
     del spreads
 
     # 6. warp, threshold, QC, write

@@ -182,6 +182,7 @@ class Fit:
     converged: bool
     iterations: int
     size_sd: float = float("nan")  # pose spread from the print's size not being known (design px; set by the batch)
+    joined: int | None = None  # refine stopped on reaching this one of the poses it was given (``known``)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
         names = [n for n, _, _ in NUISANCE]
@@ -223,13 +224,18 @@ def _prior(x, override: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.array([override[n][1] if n in override else sd for n, _, sd in NUISANCE])
 
 
-def print_template(tmpl, B: np.ndarray, x, q) -> tuple[np.ndarray, list]:
-    """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives."""
+def print_template(tmpl, B: np.ndarray, x, q, derivatives: bool = True) -> tuple[np.ndarray, list]:
+    """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives
+    (``derivatives=False``: the template alone, and the derivatives that come free with
+    it, those along the edge offsets; None for the four that cost an image each)."""
     dose, blur, gx, gy, *edge = (float(v) for v in q)
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
-    T, (dT, dTx, dTy) = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur)
-    hb = 0.1 * blur
-    dTb = (tmpl.cure(B, x, dose * field, blur=blur + hb) - T) / hb
+    if derivatives:
+        T, (dT, dTx, dTy) = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur)
+        hb = 0.1 * blur
+        dTb = (tmpl.cure(B, x, dose * field, blur=blur + hb) - T) / hb
+    else:
+        T, dT, dTb, dTx, dTy = tmpl.cure(B, x, dose * field, blur=blur), None, None, None, None
     T, dTe = edge_shifted(T, edge, tmpl.f)
     return T, [dT, dTb, dTx, dTy, *dTe]
 
@@ -251,7 +257,8 @@ def _log_scale_row(n: int, mode: str) -> np.ndarray:
 
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
-           tol: float = 0.01, spread: bool = True, prior: dict | None = None, scale_prior: tuple | None = None) -> Fit:
+           tol: float = 0.01, spread: bool = True, prior: dict | None = None, scale_prior: tuple | None = None,
+           known: list | None = None) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors).
 
@@ -269,6 +276,11 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     the scale is held at the mean, and the standard deviation counts in the pose's spread
     (unlike the nuisance priors, it is measured on other prints), so a print whose scale
     its features' sizes would set, or pull off, has its pose.
+
+    ``known``: poses (full-grid matrices) already refined from other starts. A start
+    whose steps bring it within ``JOIN_PX`` of one of them stops there (``Fit.joined``,
+    the index): it would only end where that one did, after a walk of 2 px steps that is
+    most of the work of a start far from its pose.
     """
     q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
@@ -351,6 +363,11 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         q = np.clip(q + delta[npose + 2 :], lo, hi)
         if move < tol:
             break
+        if known:
+            here = (Ms @ np.linalg.inv(S))[:2]
+            near = [i for i, K in enumerate(known) if pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX]
+            if near:
+                return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=near[0])
     converged = move < 0.25  # still moving by a quarter pixel a step: not settled (less is in the pose spread)
     sd = float("nan")
     if spread:
@@ -362,6 +379,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
 
 
+JOIN_PX = 1.0  # refine: a start this close (RMS over the field, design px) to a pose already refined stops
 ROI_BAND_PX = 16  # design px of background around the print that refinement keeps
 
 
