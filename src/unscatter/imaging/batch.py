@@ -83,11 +83,14 @@ class PoseChoice:
     """The chosen pose of one print and how it was chosen."""
 
     fit: Fit | None
-    converged: bool
     evidence: float = float("inf")  # z of the chosen pose over the nearest distinct rival
     rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
     tried: int = 0
     symmetry: float | None = None  # deg: the mask maps onto itself rotated by this, and the rival is the chosen pose so turned
+
+    @property
+    def converged(self) -> bool:  # the chosen pose's refinement settled (a refit held to a scale: that refit's)
+        return self.fit is not None and self.fit.converged
 
 
 # --------------------------------------------------------------------------- steps
@@ -125,7 +128,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
 
     def coarse(M, known=()):  # half resolution: every start and every move; None where it joins a known pose
         f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False, known=[g[0].M for g in known])
-        return None if f.joined is not None else (f, predicted_print(half, B_half, x, f))
+        return None if f.joined else (f, predicted_print(half, B_half, x, f))
 
     def coarse_all(Ms, known=()):
         out = []
@@ -215,8 +218,8 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     for R in symmetries:
         alt = (h3(best[0].M) @ R)[:2]
         if in_range(alt) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
-            return PoseChoice(best[0], best[0].converged, 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
-    return PoseChoice(best[0], best[0].converged, z_min, rival, len(fits))
+            return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
+    return PoseChoice(best[0], z_min, rival, len(fits))
 
 
 def determined(ch: PoseChoice, s: Settings) -> bool:
@@ -747,7 +750,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         return f
 
     for mid, f in zip(todo, pool.map(held, todo)):
-        choices[mid].fit, choices[mid].converged = f, f.converged
+        choices[mid].fit = f
     del spreads
 
     # 6. warp, threshold, QC, write

@@ -182,7 +182,7 @@ class Fit:
     converged: bool
     iterations: int
     size_sd: float = float("nan")  # pose spread from the print's size not being known (design px; set by the batch)
-    joined: int | None = None  # refine stopped on reaching this one of the poses it was given (``known``)
+    joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
         names = [n for n, _, _ in NUISANCE]
@@ -278,8 +278,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     its features' sizes would set, or pull off, has its pose.
 
     ``known``: poses (full-grid matrices) already refined from other starts. A start
-    whose steps bring it within ``JOIN_PX`` of one of them stops there (``Fit.joined``,
-    the index): it would only end where that one did, after a walk of 2 px steps that is
+    whose steps bring it within ``JOIN_PX`` of one of them stops there (``Fit.joined``):
+    it would only end where that one did, after a walk of 2 px steps that is
     most of the work of a start far from its pose.
     """
     q0, qs = _prior(x, prior)
@@ -291,6 +291,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     hi = np.array([_BOUNDS[n][1] for n, _, _ in NUISANCE])
     f = tmpl.f
     S = _grid_to_full(f)
+    S_inv = np.linalg.inv(S)
     Ms = h3(M) @ S
     scale = float(np.sqrt(abs(np.linalg.det(Ms[:2, :2]))))
     src = cv2.GaussianBlur(img, (0, 0), 0.4 * scale) if scale > 1.2 else img
@@ -364,10 +365,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if move < tol:
             break
         if known:
-            here = (Ms @ np.linalg.inv(S))[:2]
-            near = [i for i, K in enumerate(known) if pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX]
-            if near:
-                return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=near[0])
+            here = (Ms @ S_inv)[:2]
+            if any(pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX for K in known):
+                return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=True)
     converged = move < 0.25  # still moving by a quarter pixel a step: not settled (less is in the pose spread)
     sd = float("nan")
     if spread:
@@ -375,7 +375,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if scale_prior is not None:
             a = _log_scale_row(npose, mode)
             sd = float(np.hypot(sd, _field_rms(np.outer(a, a) * scale_prior[1] ** 2, mode, corners) * f))
-    M_full = (Ms @ np.linalg.inv(S))[:2]
+    M_full = (Ms @ S_inv)[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
 
 
