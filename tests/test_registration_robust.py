@@ -570,3 +570,37 @@ def test_registration_marks_fix_the_pose_of_prints_that_cannot_fix_their_own(tmp
     dim = read_print(tmp_path / "marked" / "reg" / "dim.png")
     marks, clear = fiducial_marks(512)
     assert dim[marks].mean() > 0.7 and dim[~clear].mean() < 0.01  # the marks printed (corners rounded), nothing else
+
+
+def test_the_template_on_refinements_crop_equals_the_whole_grids():
+    """Refinement computes the print template on a crop of the grid that holds every pixel
+    the print can cure at: within the residual window it must equal the whole grid's
+    template and derivatives, for wide haze (a reduced grid) and at half resolution, and
+    a small feature's crop must be a small part of the grid."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import ROI_BAND_PX, _cure_crop, _prior, _window, print_template
+    from unscatter.imaging.template import PrintTemplate
+
+    rng = np.random.default_rng(7)
+    dot = np.zeros((512, 512), np.uint8)
+    dot[30:70, 420:470] = 255
+    grating = np.zeros((512, 512), np.uint8)
+    grating[:, 100:400:12] = 200
+    star = patterns.siemens_star(np.random.default_rng(3), spokes=12)
+    for m in (dot, grating, star):
+        for f in (1, 2):
+            x = np.array(PrintTemplate.START, float)
+            x[1], x[8], x[9] = rng.uniform(0.2, 0.45), rng.uniform(0.1, 0.4), rng.uniform(20, 60)
+            x[10], x[11], x[12] = rng.uniform(0.7, 4.0), rng.uniform(0.1, 0.4), rng.uniform(20, 80)
+            t = PrintTemplate(512, MARGIN, factor=f)
+            B = t.exposure(t.padded(m), x)
+            q = _prior(x)[0] + rng.normal(0, 0.1, 7)
+            (r0, r1), (c0, c1) = _window(B, int(np.ceil((4 * x[10] + ROI_BAND_PX) / f)))
+            (a0, a1), (b0, b1) = _cure_crop(t, B, x, ((r0, r1), (c0, c1)))
+            whole = print_template(t, B, x, q)
+            part = print_template(t.crop((a0, a1), (b0, b1)), B[a0:a1, b0:b1], x, q)
+            for W, P in zip([whole[0], *whole[1]], [part[0], *part[1]]):
+                scale = float(np.abs(W).max())
+                assert np.abs(W[r0:r1, c0:c1] - P[r0 - a0:r1 - a0, c0 - b0:c1 - b0]).max() <= 1e-4 * scale
+            if m is dot:
+                assert (a1 - a0) * (b1 - b0) < 0.15 * B.size

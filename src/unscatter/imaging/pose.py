@@ -42,6 +42,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from .template import reduction
+
 
 def similarity(theta_deg: float, scale: float, src_c, dst_c) -> np.ndarray:
     """Rotation by theta and isotropic scale about src_c, moved to dst_c (2x3)."""
@@ -301,8 +303,12 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     # the grid's window that the print can reach: where the mask's scattered dose is, widened
     # by the microscope's blur and a band of background for the offset
     (r0, r1), (c0, c1) = _window(B, int(np.ceil((4 * max(float(x[10]), 1.0) + ROI_BAND_PX) / f)))
-    sl = (slice(r0, r1), slice(c0, c1))
     shape = (r1 - r0, c1 - c0)
+    # the template is computed on a crop of the grid that holds the window and every pixel
+    # the print can cure at (``_cure_crop``), and cut to the window
+    (a0, a1), (b0, b1) = _cure_crop(tmpl, B, x, ((r0, r1), (c0, c1)))
+    sub, B_sub = tmpl.crop((a0, a1), (b0, b1)), B[a0:a1, b0:b1]
+    sl = (slice(r0 - a0, r1 - a0), slice(c0 - b0, c1 - b0))
     g = np.arange(n, dtype=np.float32) - np.float32(c)
     Xg, Yg = np.meshgrid(g[c0:c1], g[r0:r1])
     into = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])  # window -> grid
@@ -310,7 +316,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     for it in range(1, iters + 1):
         Iw = _warp(src, (Ms @ into)[:2], shape)
         valid = np.isfinite(Iw)
-        T, dq = print_template(tmpl, B, x, q)
+        T, dq = print_template(sub, B_sub, x, q)
         T, dq = T[sl], [d[sl] for d in dq]
         if gain is None:  # first pass: gain and offset by least squares
             A = np.stack([T[valid], np.ones(int(valid.sum()), np.float32)], 1)
@@ -381,6 +387,26 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
 
 JOIN_PX = 1.0  # refine: a start this close (RMS over the field, design px) to a pose already refined stops
 ROI_BAND_PX = 16  # design px of background around the print that refinement keeps
+
+
+def _cure_crop(tmpl, B: np.ndarray, x, window: tuple) -> tuple:
+    """Rows and columns (start, stop) of the grid on which ``refine`` computes the print
+    template: the residual ``window`` and every pixel where the print can cure within the
+    nuisance numbers' bounds (dose B above the gel dose at the largest dose and field
+    gradients), widened by one cell of the haze's reduced grid and starting on one of its
+    cells, so that the template there equals the whole grid's (``PrintTemplate.crop``).
+    The cure needs dose x field x B > gel, with dose <= 5 and field <= 1 + 0.5 |X| + 0.5 |Y|
+    (under 2.2 over the padded grid)."""
+    gel = float(x[1])
+    reach = _BOUNDS["dose"][1] * (1.0 + _BOUNDS["grad_x"][1] * float(np.abs(tmpl.X).max()) + _BOUNDS["grad_y"][1] * float(np.abs(tmpl.Y).max()))
+    on = B * reach > gel if gel > 0 else np.ones(B.shape, bool)
+    rows, cols = np.flatnonzero(on.any(1)), np.flatnonzero(on.any(0))
+    (r0, r1), (c0, c1) = window
+    if len(rows):
+        r0, r1, c0, c1 = min(r0, rows[0]), max(r1, rows[-1] + 1), min(c0, cols[0]), max(c1, cols[-1] + 1)
+    d = reduction(tmpl.haze_sigma(x)) if tmpl.haze(x) > 0 else 1
+    n0, n1 = B.shape
+    return ((max(0, (r0 - d) // d * d), min(n0, r1 + d)), (max(0, (c0 - d) // d * d), min(n1, c1 + d)))
 
 
 def _window(B: np.ndarray, band: int):

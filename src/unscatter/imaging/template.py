@@ -20,25 +20,34 @@ model: it only has to put the print's edges where the image has them.
 
 from __future__ import annotations
 
+import copy
+
 import cv2
 import numpy as np
 
 
-def gaussian(a: np.ndarray, sigma: float) -> np.ndarray:
-    """G_sigma * a (OpenCV's reflected border). A wide kernel (sigma above 6 px) is applied
-    on a grid reduced by d = sigma // 3: a box average down, the Gaussian of the remaining
-    width, linear interpolation up (their variances, d^2/12 and d^2/6, taken out of
-    sigma^2). Off by less than 1 % of the peak from the direct filter, and 20 times faster
-    for the haze and the scattering tail, which are 15 to 40 px wide."""
+def gaussian(a: np.ndarray, sigma: float, border: int = cv2.BORDER_REFLECT_101) -> np.ndarray:
+    """G_sigma * a, with OpenCV's ``border`` (reflected by default; ``cv2.BORDER_CONSTANT``:
+    zero outside ``a``). A wide kernel (sigma above 6 px) is applied on a grid reduced by
+    d = sigma // 3: a box average down, the Gaussian of the remaining width, linear
+    interpolation up (their variances, d^2/12 and d^2/6, taken out of sigma^2). Off by less
+    than 1 % of the peak from the direct filter, and 20 times faster for the haze and the
+    scattering tail, which are 15 to 40 px wide. The reduced grid's cells start at a's
+    origin (``reduction``)."""
     if sigma <= 6.0:
-        return cv2.GaussianBlur(a, (0, 0), sigma)
-    d = int(sigma // 3)
+        return cv2.GaussianBlur(a, (0, 0), sigma, borderType=border)
+    d = reduction(sigma)
     h, w = a.shape
     H, W = -(-h // d) * d, -(-w // d) * d
-    p = cv2.copyMakeBorder(a, 0, H - h, 0, W - w, cv2.BORDER_REFLECT_101) if (H, W) != (h, w) else a
+    p = cv2.copyMakeBorder(a, 0, H - h, 0, W - w, border, value=0) if (H, W) != (h, w) else a
     small = cv2.resize(p, (W // d, H // d), interpolation=cv2.INTER_AREA)
-    small = cv2.GaussianBlur(small, (0, 0), np.sqrt(sigma**2 - d * d / 4.0) / d)
+    small = cv2.GaussianBlur(small, (0, 0), np.sqrt(sigma**2 - d * d / 4.0) / d, borderType=border)
     return cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR)[:h, :w]
+
+
+def reduction(sigma: float) -> int:
+    """The reduction d of ``gaussian``'s grid for a kernel of ``sigma`` px (1: none)."""
+    return int(sigma // 3) if sigma > 6.0 else 1
 
 
 class PrintTemplate:
@@ -88,11 +97,29 @@ class PrintTemplate:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
         image of a thick gel), a share ``haze`` of the light spread over ``haze_sigma``."""
         R = R.astype(np.float32)
-        T = cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f)
-        haze = min(max(float(x[11]), 0.0), 0.5)
+        T = cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f, borderType=cv2.BORDER_CONSTANT)
+        haze = self.haze(x)
         if haze > 0:
-            T = (1 - haze) * T + haze * gaussian(R, max(float(x[12]), 2.0) / self.f)
+            T = (1 - haze) * T + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT)
         return T
+
+    def haze(self, x) -> float:
+        return min(max(float(x[11]), 0.0), 0.5)
+
+    def haze_sigma(self, x) -> float:
+        """The haze's width on this template's grid."""
+        return max(float(x[12]), 2.0) / self.f
+
+    def crop(self, rows: tuple, cols: tuple) -> "PrintTemplate":
+        """The same template on the part (start, stop) ``rows`` x ``cols`` of its grid, for a
+        scattered dose cut to that part. The microscope images a cured print with zero
+        light outside the grid (no mask, no print there), so a crop holding every pixel a
+        print can cure at, whose start is a multiple of the haze's reduction
+        (``reduction``), images it as the whole grid does."""
+        sub = copy.copy(self)
+        sub.X, sub.Y = self.X[rows[0]:rows[1], cols[0]:cols[1]], self.Y[rows[0]:rows[1], cols[0]:cols[1]]
+        sub.shape = sub.X.shape
+        return sub
 
     def cure_jacobian(self, B: np.ndarray, x, dose, modulations, blur: float):
         """T for a dose map ``dose`` (scalar or array) and its derivatives along each of
