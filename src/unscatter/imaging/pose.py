@@ -99,6 +99,33 @@ def _grid_search(t_small, Fi, N, thetas, scales):
     return out
 
 
+def _local_search(t_small, img_z, pos0, thetas, scales, radius):
+    """``_grid_search`` with the template's centre within ``radius`` px of ``pos0`` (x, y in
+    the small image): each (theta, scale)'s correlation is computed only over those shifts
+    (OpenCV's ``matchTemplate`` on the part of the zero-padded image they reach), not
+    over the whole image."""
+    ct = ((t_small.shape[1] - 1) / 2, (t_small.shape[0] - 1) / 2)
+    Hs, Ws = img_z.shape
+    out = []
+    for sc in scales:
+        side = int(np.ceil(max(t_small.shape) * sc * 1.42)) + 2
+        c_side = ((side - 1) / 2, (side - 1) / 2)
+        x0, y0 = (int(round(v)) - radius for v in (pos0[0] - c_side[0], pos0[1] - c_side[1]))  # top-left, first shift
+        span = side + 2 * radius
+        region = np.zeros((span, span), np.float32)
+        ys, xs = slice(max(0, y0), min(Hs, y0 + span)), slice(max(0, x0), min(Ws, x0 + span))
+        if ys.stop > ys.start and xs.stop > xs.start:
+            region[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = img_z[ys, xs]
+        for th in thetas:
+            w = cv2.warpAffine(t_small, similarity(th, sc, ct, c_side), (side, side), flags=cv2.INTER_LINEAR)
+            cc = cv2.matchTemplate(region, _zn(w).astype(np.float32), cv2.TM_CCORR)
+            k = int(np.argmax(cc))
+            dy, dx = divmod(k, cc.shape[1])
+            out.append((float(cc.flat[k]), float(th), float(sc), np.array([c_side[0] + x0 + dx, c_side[1] + y0 + dy])))
+    out.sort(key=lambda c: -c[0])
+    return out
+
+
 def _distinct(cands, count, d_theta, d_logs, d_pos):
     kept = []
     for c in cands:
@@ -110,39 +137,45 @@ def _distinct(cands, count, d_theta, d_logs, d_pos):
     return kept
 
 
+FINE_RADIUS = 8  # px of the 128 px grid that the fine search may move a candidate: 4 px of the 64 px grid, on which
+# a candidate's shift is within half a pixel plus what a rotation step of 4 deg and a scale step of 8 % move the peak
+
+
 def coarse_candidates(tpl: np.ndarray, img: np.ndarray, rotation: tuple, scale: tuple, count: int = 3):
     """Up to ``count`` distinct poses (template grid -> image), best first, with their scores.
 
-    A wide grid with the template at 64 px, then a fine grid around each distinct
-    candidate at 128 px. ``rotation`` (deg) and ``scale`` (image px per design px) are
-    the ranges searched."""
+    A wide grid with the template at 64 px (every shift, by FFT), then a fine grid
+    around each distinct candidate at 128 px, its shift within ``FINE_RADIUS`` px of the
+    candidate's (``_local_search``). ``rotation`` (deg) and ``scale`` (image px per
+    design px) are the ranges searched."""
     lo, hi = scale
     rlo, rhi = rotation
-    cands = None
+    cands, f_prev = None, 1.0
     for side, dth, dls in ((64, 4.0, 0.08), (128, 1.0, 0.02)):
         f = max(1.0, tpl.shape[0] / side)
         t_small = cv2.resize(tpl, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
         i_small = cv2.resize(img, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_AREA)
         Hs, Ws = i_small.shape
-        N = cv2.getOptimalDFTSize(int(max(Hs, Ws) + hi * max(t_small.shape) * 1.5))
-        img_c = np.zeros((N, N), np.float32)
-        img_c[:Hs, :Ws] = _zn(i_small)
-        Fi = np.fft.rfft2(img_c)
         if cands is None:
+            N = cv2.getOptimalDFTSize(int(max(Hs, Ws) + hi * max(t_small.shape) * 1.5))
+            img_c = np.zeros((N, N), np.float32)
+            img_c[:Hs, :Ws] = _zn(i_small)
             n_th = max(1, int(np.ceil((rhi - rlo) / dth)))
             thetas = np.linspace(rlo, rhi, n_th + 1) if rhi > rlo else np.array([rlo])
             scales = np.exp(np.arange(np.log(lo), np.log(hi) + 1e-9, dls)) if hi > lo * np.exp(dls / 2) else np.array([np.sqrt(lo * hi)])
-            found = _grid_search(t_small, Fi, N, thetas, scales)
+            found = _grid_search(t_small, np.fft.rfft2(img_c), N, thetas, scales)
             cands = _distinct(found, count, 6.0, 0.1, 3.0)
         else:
-            fine = []
+            img_z, fine = _zn(i_small).astype(np.float32), []
             for _, th0, sc0, pos0 in cands:
                 thetas = np.clip(th0 + np.arange(-3, 3 + 1e-9, dth), rlo, rhi)
                 scales = np.clip(sc0 * np.exp(np.arange(-0.06, 0.06 + 1e-9, dls)), lo, hi)
-                found = _grid_search(t_small, Fi, N, np.unique(thetas), np.unique(scales))
+                at = (f_prev * pos0 + (f_prev - 1) / 2 - (f - 1) / 2) / f  # the candidate's centre on this grid
+                found = _local_search(t_small, img_z, at, np.unique(thetas), np.unique(scales), FINE_RADIUS)
                 fine.append(found[0])
             fine.sort(key=lambda c: -c[0])
             cands = _distinct(fine, count, 1.5, 0.02, 2.0)
+        f_prev = f
     c_tpl = ((tpl.shape[1] - 1) / 2, (tpl.shape[0] - 1) / 2)
     return [(v, similarity(th, sc, c_tpl, f * pos + (f - 1) / 2)) for v, th, sc, pos in cands]
 
@@ -233,9 +266,7 @@ def print_template(tmpl, B: np.ndarray, x, q, derivatives: bool = True) -> tuple
     dose, blur, gx, gy, *edge = (float(v) for v in q)
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
     if derivatives:
-        T, (dT, dTx, dTy) = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur)
-        hb = 0.1 * blur
-        dTb = (tmpl.cure(B, x, dose * field, blur=blur + hb) - T) / hb
+        T, (dT, dTx, dTy), dTb = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur, 0.1 * blur)
     else:
         T, dT, dTb, dTx, dTy = tmpl.cure(B, x, dose * field, blur=blur), None, None, None, None
     T, dTe = edge_shifted(T, edge, tmpl.f)

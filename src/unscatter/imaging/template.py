@@ -97,11 +97,15 @@ class PrintTemplate:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
         image of a thick gel), a share ``haze`` of the light spread over ``haze_sigma``."""
         R = R.astype(np.float32)
-        T = cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f, borderType=cv2.BORDER_CONSTANT)
+        T = self.focus(R, blur)
         haze = self.haze(x)
         if haze > 0:
             T = (1 - haze) * T + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT)
         return T
+
+    def focus(self, R: np.ndarray, blur: float) -> np.ndarray:
+        """The focus blur alone (``blur`` in design px)."""
+        return cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f, borderType=cv2.BORDER_CONSTANT)
 
     def haze(self, x) -> float:
         return min(max(float(x[11]), 0.0), 0.5)
@@ -121,15 +125,21 @@ class PrintTemplate:
         sub.shape = sub.X.shape
         return sub
 
-    def cure_jacobian(self, B: np.ndarray, x, dose, modulations, blur: float):
-        """T for a dose map ``dose`` (scalar or array) and its derivatives along each of
-        ``modulations`` (d dose / d theta maps): dT/dtheta = G_blur * (exp(-u/k) B / k dD/dtheta)."""
+    def cure_jacobian(self, B: np.ndarray, x, dose, modulations, blur: float, blur_step: float):
+        """T for a dose map ``dose`` (scalar or array), its derivatives along each of
+        ``modulations`` (d dose / d theta maps): dT/dtheta = G_blur * (exp(-u/k) B / k dD/dtheta),
+        and along the blur, a forward difference over ``blur_step`` (the haze, which does
+        not depend on the blur, drops out of it)."""
         gel, k = float(x[1]), max(float(x[2]), 1e-3)
         u = np.maximum(dose * B - gel, 0.0)
         e = np.exp(-u / k)
-        T = self.image(1.0 - e, x, blur)
+        R = (1.0 - e).astype(np.float32)
+        F = self.focus(R, blur)
+        haze = self.haze(x)
+        T = (1 - haze) * F + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT) if haze > 0 else F
+        dT_blur = (1 - haze) * (self.focus(R, blur + blur_step) - F) / blur_step
         base = np.where(u > 0, e * B / k, 0.0)
-        return T, [self.image(base * mod, x, blur) for mod in modulations]
+        return T, [self.image(base * mod, x, blur) for mod in modulations], dT_blur
 
     def __call__(self, m: np.ndarray, x, dose: float = 1.0, blur: float | None = None) -> np.ndarray:
         return self.cure(self.exposure(m, x), x, dose, blur=blur)
