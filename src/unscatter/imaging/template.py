@@ -97,17 +97,20 @@ class PrintTemplate:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
         image of a thick gel), a share ``haze`` of the light spread over ``haze_sigma``."""
         R = R.astype(np.float32)
-        T = self.focus(R, blur)
+        return self.hazed(R, x, self.focus(R, blur))
+
+    def hazed(self, R: np.ndarray, x, F: np.ndarray) -> np.ndarray:
+        """The image of R from its focus-blurred image F: the haze's share of the light
+        spread over its width."""
         haze = self.haze(x)
-        if haze > 0:
-            T = (1 - haze) * T + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT)
-        return T
+        return (1 - haze) * F + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT) if haze > 0 else F
 
     def focus(self, R: np.ndarray, blur: float) -> np.ndarray:
         """The focus blur alone (``blur`` in design px)."""
         return cv2.GaussianBlur(R, (0, 0), max(blur, 0.3) / self.f, borderType=cv2.BORDER_CONSTANT)
 
     def haze(self, x) -> float:
+        """The haze's share of the light (0 to 0.5)."""
         return min(max(float(x[11]), 0.0), 0.5)
 
     def haze_sigma(self, x) -> float:
@@ -135,9 +138,8 @@ class PrintTemplate:
         e = np.exp(-u / k)
         R = (1.0 - e).astype(np.float32)
         F = self.focus(R, blur)
-        haze = self.haze(x)
-        T = (1 - haze) * F + haze * gaussian(R, self.haze_sigma(x), cv2.BORDER_CONSTANT) if haze > 0 else F
-        dT_blur = (1 - haze) * (self.focus(R, blur + blur_step) - F) / blur_step
+        T = self.hazed(R, x, F)
+        dT_blur = (1 - self.haze(x)) * (self.focus(R, blur + blur_step) - F) / blur_step
         base = np.where(u > 0, e * B / k, 0.0)
         return T, [self.image(base * mod, x, blur) for mod in modulations], dT_blur
 
