@@ -75,26 +75,34 @@ def pose_distance(M1: np.ndarray, M2: np.ndarray, grid_px: int, margin: int, ste
 # ------------------------------------------------------------------ 1. coarse search
 
 
-def _grid_search(t_small, Fi, N, thetas, scales):
-    """FFT cross-correlation of the rotated, scaled template with the image.
-
-    Returns (score, theta, scale, template-centre position in the small image) for
-    every (theta, scale), the shift at the correlation peak."""
+def _turned(t_small, thetas, scales):
+    """The template rotated by each theta and scaled by each scale about its centre (scales
+    outer, thetas inner), on a square that holds it at any turn, zero-normalised: yields
+    (theta, scale, the square's centre (x, y), the template)."""
     ct = ((t_small.shape[1] - 1) / 2, (t_small.shape[0] - 1) / 2)
-    out = []
     for sc in scales:
         side = int(np.ceil(max(t_small.shape) * sc * 1.42)) + 2
         c_side = ((side - 1) / 2, (side - 1) / 2)
         for th in thetas:
             w = cv2.warpAffine(t_small, similarity(th, sc, ct, c_side), (side, side), flags=cv2.INTER_LINEAR)
-            tz = np.zeros((N, N), np.float32)
-            tz[:side, :side] = _zn(w)
-            cc = np.fft.irfft2(Fi * np.conj(np.fft.rfft2(tz)), s=(N, N))
-            k = int(np.argmax(cc))
-            dy, dx = divmod(k, N)
-            dy = dy - N if dy > N // 2 else dy
-            dx = dx - N if dx > N // 2 else dx
-            out.append((float(cc.flat[k]), float(th), float(sc), np.array([c_side[0] + dx, c_side[1] + dy])))
+            yield float(th), float(sc), c_side, _zn(w).astype(np.float32)
+
+
+def _grid_search(t_small, Fi, N, thetas, scales):
+    """FFT cross-correlation of the rotated, scaled template with the image.
+
+    Returns (score, theta, scale, template-centre position in the small image) for
+    every (theta, scale), the shift at the correlation peak."""
+    out = []
+    for th, sc, c_side, w in _turned(t_small, thetas, scales):
+        tz = np.zeros((N, N), np.float32)
+        tz[: w.shape[0], : w.shape[1]] = w
+        cc = np.fft.irfft2(Fi * np.conj(np.fft.rfft2(tz)), s=(N, N))
+        k = int(np.argmax(cc))
+        dy, dx = divmod(k, N)
+        dy = dy - N if dy > N // 2 else dy
+        dx = dx - N if dx > N // 2 else dx
+        out.append((float(cc.flat[k]), th, sc, np.array([c_side[0] + dx, c_side[1] + dy])))
     out.sort(key=lambda c: -c[0])
     return out
 
@@ -104,24 +112,22 @@ def _local_search(t_small, img_z, pos0, thetas, scales, radius):
     the small image): each (theta, scale)'s correlation is computed only over those shifts
     (OpenCV's ``matchTemplate`` on the part of the zero-padded image they reach), not
     over the whole image."""
-    ct = ((t_small.shape[1] - 1) / 2, (t_small.shape[0] - 1) / 2)
     Hs, Ws = img_z.shape
-    out = []
-    for sc in scales:
-        side = int(np.ceil(max(t_small.shape) * sc * 1.42)) + 2
-        c_side = ((side - 1) / 2, (side - 1) / 2)
+    out, regions = [], {}
+    for th, sc, c_side, w in _turned(t_small, thetas, scales):
+        side = w.shape[0]
         x0, y0 = (int(round(v)) - radius for v in (pos0[0] - c_side[0], pos0[1] - c_side[1]))  # top-left, first shift
-        span = side + 2 * radius
-        region = np.zeros((span, span), np.float32)
-        ys, xs = slice(max(0, y0), min(Hs, y0 + span)), slice(max(0, x0), min(Ws, x0 + span))
-        if ys.stop > ys.start and xs.stop > xs.start:
-            region[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = img_z[ys, xs]
-        for th in thetas:
-            w = cv2.warpAffine(t_small, similarity(th, sc, ct, c_side), (side, side), flags=cv2.INTER_LINEAR)
-            cc = cv2.matchTemplate(region, _zn(w).astype(np.float32), cv2.TM_CCORR)
-            k = int(np.argmax(cc))
-            dy, dx = divmod(k, cc.shape[1])
-            out.append((float(cc.flat[k]), float(th), float(sc), np.array([c_side[0] + x0 + dx, c_side[1] + y0 + dy])))
+        if side not in regions:  # the image under every shift, one square side at a time
+            span = side + 2 * radius
+            region = np.zeros((span, span), np.float32)
+            ys, xs = slice(max(0, y0), min(Hs, y0 + span)), slice(max(0, x0), min(Ws, x0 + span))
+            if ys.stop > ys.start and xs.stop > xs.start:
+                region[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = img_z[ys, xs]
+            regions[side] = region
+        cc = cv2.matchTemplate(regions[side], w, cv2.TM_CCORR)
+        k = int(np.argmax(cc))
+        dy, dx = divmod(k, cc.shape[1])
+        out.append((float(cc.flat[k]), th, sc, np.array([c_side[0] + x0 + dx, c_side[1] + y0 + dy])))
     out.sort(key=lambda c: -c[0])
     return out
 

@@ -87,11 +87,16 @@ class PrintTemplate:
         """The imaged print T for the scattered dose B (``dose`` a number or a map).
 
         ``blur`` (design px) overrides the batch's microscope blur: focus varies by image."""
-        gel, k = float(x[1]), max(float(x[2]), 1e-3)
         blur = max(float(x[10]) if blur is None else blur, 0.3)
-        u = np.maximum(dose * B - gel, 0.0)
-        e = np.exp(-u / k)
+        _, e, _ = self.cured(B, x, dose)
         return self.image(1.0 - e, x, blur)
+
+    @staticmethod
+    def cured(B: np.ndarray, x, dose):
+        """The cure's dose above the gel point u, its exp(-u / k) and k."""
+        gel, k = float(x[1]), max(float(x[2]), 1e-3)
+        u = np.maximum(dose * B - gel, 0.0)
+        return u, np.exp(-u / k), k
 
     def image(self, R: np.ndarray, x, blur: float) -> np.ndarray:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
@@ -133,9 +138,7 @@ class PrintTemplate:
         ``modulations`` (d dose / d theta maps): dT/dtheta = G_blur * (exp(-u/k) B / k dD/dtheta),
         and along the blur, a forward difference over ``blur_step`` (the haze, which does
         not depend on the blur, drops out of it)."""
-        gel, k = float(x[1]), max(float(x[2]), 1e-3)
-        u = np.maximum(dose * B - gel, 0.0)
-        e = np.exp(-u / k)
+        u, e, k = self.cured(B, x, dose)
         R = (1.0 - e).astype(np.float32)
         F = self.focus(R, blur)
         T = self.hazed(R, x, F)
