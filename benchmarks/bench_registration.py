@@ -26,6 +26,16 @@ the two cores). Writes ``prints.tsv`` (one row per print), ``labs.yaml`` (each l
 config overrides), ``summary.txt`` (what is printed) and ``worst.png`` (the overlays of
 the worst prints) under ``--out``.
 
+One lab of a ``--labs`` run again, with some of its physics changed (an ablation):
+
+    python benchmarks/bench_registration.py --reprint benchmarks/out/registration_labs/lab_07 \
+        --set printer.kernel.heavy_tail.fraction=0 [--set KEY=VALUE ...] [--out DIR]
+
+prints the lab's masks again with its own full config (``batch.truth/lab_config.yaml``,
+its seed included, so that everything not changed, noise too, is the same bit for bit),
+registers the new batch and lists, print by print, the verdicts and pose errors before
+and after: which of a lab's effects makes a print fail or go silently wrong.
+
 A print is *silently wrong* when registration reports it ``ok`` with a pose error above
 1.5 mask px, or ``empty`` although the lab's noise-free print has more than 0.05 % of
 the field solid (131 mask px, a dot of 13 px across; registration's own empty test
@@ -43,6 +53,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from unscatter.imaging import Settings, correct_image, threshold_print, transform_rms_px
 from unscatter.io import InputError, benchmark_output_dir, read_print, read_tsv, read_yaml, write_png, write_tsv, write_yaml
@@ -235,6 +246,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
     L += qc_lines(rows)
     L += metadata_lines(labs, rows)
+    L += tail_lines(labs, rows)
     L += ["", f"silently wrong ({len(silent)}): ok with pose error > {SILENT_POSE_PX} px, or empty with truth solid > {SILENT_EMPTY_SOLID}"]
     for r in sorted(silent, key=lambda r: -r.get("rms_px", 0)):
         L.append(f"  lab {r['lab']}  {r['id']:22s} {r['pattern']:15s} {r['status']:6s} pose error {_fmt(r.get('rms_px'), '.2f')} px  "
@@ -277,6 +289,23 @@ def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:
             parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
                          f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
     return ["  by the camera pixel size the lab states: " + "; ".join(parts)]
+
+
+def tail_lines(labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures, silent errors and the ok prints' pose error by the share of the lab's
+    scattering kernel in its heavy tail: the print template's tail is the part of it
+    that a batch's prints pin down least (README, registration)."""
+    share = {lab["index"]: float(((lab["overrides"].get("printer", {}).get("kernel") or {}).get("heavy_tail") or {})
+                                 .get("fraction", 0.0)) for lab in labs}
+    parts = []
+    for lo, hi in ((0.0, 0.1), (0.1, 0.25), (0.25, np.inf)):
+        idx = [k for k, v in share.items() if lo <= v < hi]
+        rr = [r for r in rows if r["lab"] in idx]
+        if rr:
+            err = [r["rms_px"] for r in rr if r["status"] == "ok" and np.isfinite(r.get("rms_px", np.nan))]
+            parts.append(f"{f'{lo:g} to {hi:g}' if np.isfinite(hi) else f'{lo:g} and above'} ({len(idx)} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
+                         f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}, ok median {_fmt(_median(err))} px")
+    return ["  by the lab's heavy-tail share of scattered light: " + "; ".join(parts)]
 
 
 def qc_lines(rows: list[dict]) -> list[str]:
@@ -366,6 +395,67 @@ def random_labs(a) -> None:
     print(f"\nwrote {out / 'prints.tsv'}, {out / 'summary.txt'}, {out / 'labs.yaml'}, {out / 'worst.png'}")
 
 
+def _set(cfg: dict, assignment: str) -> str:
+    """Apply KEY=VALUE (dotted KEY, VALUE in YAML) to ``cfg``; returns the assignment."""
+    key, sep, value = assignment.partition("=")
+    if not sep or not key:
+        sys.exit(f"error: --set {assignment!r}: expected KEY=VALUE, e.g. printer.kernel.heavy_tail.fraction=0")
+    node, parts = cfg, key.split(".")
+    for k in parts[:-1]:
+        if not isinstance(node.get(k), dict):
+            sys.exit(f"error: --set {assignment!r}: the lab config has no section {k!r} on the way to {key!r}")
+        node = node[k]
+    if parts[-1] not in node:
+        sys.exit(f"error: --set {assignment!r}: the lab config has no {key!r}")
+    node[parts[-1]] = yaml.safe_load(value)
+    return assignment
+
+
+def reprint(a) -> None:
+    """``--reprint``: the ablation of one lab's physics (see the module's docstring)."""
+    from unscatter.imaging import register_batch
+    from unscatter.lab import print_batch
+
+    src = a.reprint
+    truth = src / "batch.truth"
+    for need in (src / "masks", src / "reg" / "qc.tsv", truth / "lab_config.yaml", truth / "transforms.tsv"):
+        if not need.exists():
+            sys.exit(f"error: --reprint {src}: {need} is missing (a lab folder of a bench_registration.py --labs run)")
+    cfg = read_yaml(truth / "lab_config.yaml")
+    changes = [_set(cfg, kv) for kv in a.set or []]
+    try:
+        out = benchmark_output_dir(a.out or Path("benchmarks/out/registration_reprint"), script="benchmarks/bench_registration.py")
+    except InputError as exc:
+        sys.exit(f"error: {exc}")
+    write_yaml(out / "lab_config.yaml", cfg)
+    exposures = {r["id"]: float(r["exposure"]) for r in read_tsv(truth / "transforms.tsv")}
+    print_batch(src / "masks", out / "batch", lab_config=out / "lab_config.yaml", seed=cfg.get("seed"), progress=False,
+                exposures=exposures)
+    logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)
+    t0 = time.perf_counter()
+    register_batch(out / "batch", out / "reg", skip_failed=True, threads=a.threads, progress=False)
+    dt = time.perf_counter() - t0
+    before = {r["id"]: r for r in evaluate(src / "reg", truth)}
+    after = {r["id"]: r for r in evaluate(out / "reg", out / "batch.truth")}
+
+    def verdict(r):
+        return "SILENTLY WRONG" if silently_wrong(r) else r["status"]
+
+    L = [f"{src} reprinted with {', '.join(changes) or 'no change'}; registration {dt:.1f} s", "",
+         f"  {'id':22s} {'before':>14s} {'pose error':>10s}   {'after':>14s} {'pose error':>10s}"]
+    for mid in sorted(before):
+        b, c = before[mid], after[mid]
+        L.append(f"  {mid:22s} {verdict(b):>14s} {_fmt(b.get('rms_px'), '.2f'):>10s}   {verdict(c):>14s} {_fmt(c.get('rms_px'), '.2f'):>10s}")
+    for name, rr in (("before", before), ("after", after)):
+        ok = [r["rms_px"] for r in rr.values() if r["status"] == "ok"]
+        L.append(f"  {name}: {sum(r['status'] == 'failed' for r in rr.values())} failed, {sum(silently_wrong(r) for r in rr.values())} "
+                 f"silently wrong of {len(rr)}, pose error of ok prints median {_fmt(_median(ok))} px")
+    text = "\n".join(L)
+    (out / "summary.txt").write_text(text + "\n")
+    print(text)
+    print(f"\nwrote {out / 'summary.txt'}, {out / 'reg'}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--count", type=int, default=32, help="trial masks (one lab)")
@@ -378,8 +468,15 @@ def main():
                     help="random labs: test patterns, or the trial-mask design's candidates without (pool) or with "
                          "(marked) their registration marks")
     ap.add_argument("--threads", type=int, default=2, help="registration threads (the workflow uses 2)")
+    ap.add_argument("--reprint", type=Path, help="a lab folder of a --labs run: print it again with --set changes")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="with --reprint: a change to the lab's config (dotted key, YAML value); repeatable")
     a = ap.parse_args()
-    if a.labs:
+    if a.set and not a.reprint:
+        ap.error("--set needs --reprint")
+    if a.reprint:
+        reprint(a)
+    elif a.labs:
         random_labs(a)
     else:
         single_lab(a)

@@ -401,6 +401,59 @@ def test_feature_sizes_are_known_as_well_as_the_batch_shows():
     assert size_error(fits[: s.size_min_prints - 1], s) == ((0.0, 0.0, 0.0), (s.size_sd,) * 3)
 
 
+def test_edge_misfit_measures_how_far_the_images_edges_lie_from_the_templates():
+    """A disc imaged 1 px larger than its template reads about 1 px off; the same disc
+    under noise alone reads near 0 (the noise is taken out)."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from unscatter.imaging.pose import edge_misfit
+
+    yy, xx = np.mgrid[:200, :200]
+    r = np.hypot(xx - 100.3, yy - 99.6)
+
+    def disc(radius):
+        return cv2.GaussianBlur((r <= radius).astype(np.float32), (0, 0), 2.0)
+
+    T = disc(40.0)
+    fit = SimpleNamespace(gain=3.0, offset=0.5)
+    noise = np.random.default_rng(4).normal(0, 0.05, T.shape).astype(np.float32)
+    assert edge_misfit(3.0 * disc(41.0) + 0.5 + noise, T, fit) == pytest.approx(1.0, abs=0.15)
+    assert edge_misfit(3.0 * disc(40.0) + 0.5 + noise, T, fit) < 0.1
+    nan = np.full(T.shape, np.nan, np.float32)
+    assert edge_misfit(nan, T, fit) == float("inf")
+
+
+def test_edge_places_are_known_as_well_as_the_batch_shows_but_never_worse_than_assumed():
+    from unscatter.imaging.batch import Settings, edge_place_sd
+    from unscatter.imaging.pose import EDGE_SD
+
+    s = Settings()
+    assert edge_place_sd([0.2, 0.25, 0.22, 0.9, float("inf")], s) == pytest.approx(0.235)
+    assert edge_place_sd([1.2, 1.5, 0.9, 1.1], s) == EDGE_SD  # a stain reads as misfit too: not taken as worse edges
+    assert edge_place_sd([0.01] * 6, s) == s.min_edge_sd
+    assert edge_place_sd([0.2] * (s.size_min_prints - 1), s) == EDGE_SD
+
+
+def test_a_dot_row_is_placed_as_well_as_its_edges_are():
+    """Three dots in a row fix the pose by where they lie; how well, the edges' places say:
+    the spread shrinks with ``edge_sd``."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import EDGE_SD, size_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    dots = np.zeros((512, 512), np.uint8)
+    yy, xx = np.mgrid[:512, :512]
+    for cx in (210, 256, 302):
+        dots[np.hypot(xx - cx, yy - 400) <= 9] = 255
+    T = tmpl(tmpl.padded(dots), x)
+    wide, close = (size_spread(T, "similarity", 0.2, edge_sd=e) for e in (EDGE_SD, 0.2))
+    assert wide > 1.5 > close
+
+
 def test_one_magnification_holds_the_scale_of_prints_that_cannot_fix_theirs(tmp_path):
     """A batch imaged at one scale: a block and an L, whose scale would rest on their size
     alone, take the scale that the trial prints agree on and register where they are;

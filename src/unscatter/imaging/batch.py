@@ -18,7 +18,7 @@ from ..io import InputError, open_batch, output_dir, read_mask, write_png, write
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
-                   merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design)
+                   merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_template, ncc
 
 log = logging.getLogger(__name__)
@@ -66,6 +66,7 @@ class Settings:
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
+    min_edge_sd: float = 0.1  # design px: edge places known at best this well (edge_place_sd)
     fixed_scale_sd: float = 0.004  # a batch whose prints that fix their own scale agree on it within this (robust sd
     # of the log scale) was imaged at one magnification: it holds the scale of prints that cannot fix theirs
     scale_min_prints: int = 6  # ... with at least this many such prints
@@ -297,6 +298,19 @@ def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
     mad = 1.4826 * np.median(np.abs(e - centre), axis=0)  # robust: a partial print among them does not set it
     aniso = float(max(s.min_size_sd, np.hypot(mad[1], mad[2]) / np.sqrt(2)))
     return tuple(float(v) for v in centre), (float(max(s.min_size_sd, mad[0])), aniso, aniso)
+
+
+def edge_place_sd(misfits: list, s: Settings) -> float:
+    """How far one boundary pixel's place may be off (``size_spread``'s ``edge_sd``): the
+    fixed EDGE_SD (0.4 px), or less where the batch's prints whose pose their features'
+    places fix (at least ``size_min_prints``) show, by their median ``edge_misfit``, that
+    its template places edges closer than that; never below ``min_edge_sd``. The misfit
+    counts every residual as an edge's displacement (a stain too), so it only lowers the
+    spread: a larger one is not taken as a measure of the edges."""
+    m = [v for v in misfits if np.isfinite(v)]
+    if len(m) < s.size_min_prints:
+        return EDGE_SD
+    return float(min(EDGE_SD, max(s.min_edge_sd, np.median(m))))
 
 
 def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
@@ -688,8 +702,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # batch's template predicts sizes: the edge offsets fitted on the prints whose features'
     # places fix their pose (``size_error``)
     def free_spread(mid):
-        T = predicted_print(full, full.exposure(full.padded(masks[mid]), x), x, choices[mid].fit)
-        return T, size_spread(T, s.mode)
+        f = choices[mid].fit
+        T = predicted_print(full, full.exposure(full.padded(masks[mid]), x), x, f)
+        img = cv2.warpAffine(smooth[mid], f.M, (grid, grid), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                             borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+        return T, size_spread(T, s.mode), edge_misfit(img, T, f)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
     placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
@@ -697,6 +714,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     centre, edge_sd = size_error(placed, s)
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
+    misfits = [spreads[mid][2] for mid in placed_ids]
+    place_sd = edge_place_sd(misfits, s)
+    edge_places = dict(sd=place_sd, median_misfit=float(np.median(misfits)) if misfits else None, prints=len(misfits))
+    log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix)", place_sd,
+             "none" if not misfits else f"{edge_places['median_misfit']:.2f} px", len(misfits))
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
     one_scale = batch_scale(placed, s)
     if one_scale is not None:
@@ -746,14 +768,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
-            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None)
+            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None, place_sd)
             return f
 
         if edges or scaled:
             f = fit(one_scale if scaled else None)
         else:
             f = ch.fit
-            f.size_sd = size_spread(T, s.mode, sd)
+            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd)
         p = stated.get(mid)
         if (p is not None and (one_scale is None or p[1] < one_scale[1])
                 and f.pose_sd <= 1.5 * s.max_pose_sd and f.size_sd > s.max_size_sd):
@@ -870,7 +892,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
                                                    measurement=measurement_record(p, rows, s.level),
                                                    one_magnification=None if one_scale is None else dict(
-                                                       scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed))))
+                                                       scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed)),
+                                                   edge_places=edge_places))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
     return rows
 

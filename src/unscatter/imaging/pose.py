@@ -483,7 +483,27 @@ EDGE_CORR_PX = 16.0
 WEAK_EDGE = 0.25  # boundary pixels with less than this share of the median slope do not count
 
 
-def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None) -> float:
+def edge_misfit(img: np.ndarray, T: np.ndarray, fit: "Fit") -> float:
+    """How far the image's edges lie from the fitted template's, as an RMS displacement
+    (grid px): the residual's energy near the edges over the template's gradient energy
+    there, the image noise taken out. ``img`` is the image on ``T``'s grid (NaN outside
+    it). A residual that is not an edge's displacement (a stain, a brighter part of a
+    print) counts as one, so this overstates how far the edges are off; it is used only
+    where it is small (``size_spread``'s ``edge_sd``)."""
+    P = fit.gain * T.astype(np.float64) + fit.offset
+    gy, gx = np.gradient(P)
+    g2 = gx * gx + gy * gy
+    if not np.isfinite(img).any() or g2.max() <= 0:
+        return float("inf")
+    near = cv2.dilate((g2 > 0.05 * g2.max()).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    win = near & np.isfinite(img)
+    flat = np.isfinite(img) & ~near & (T < 0.02 * float(T.max()))
+    noise = float(np.var(img[flat])) if np.count_nonzero(flat) >= 100 else 0.0
+    r2 = float(np.sum((img[win] - P[win]) ** 2)) - noise * np.count_nonzero(win)
+    return float(np.sqrt(max(r2, 0.0) / max(float(g2[win].sum()), 1e-12)))
+
+
+def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD) -> float:
     """The pose's spread (px of ``T``'s grid, RMS over the field) when each feature of the
     predicted print ``T`` may be larger or smaller than predicted, more so across one
     direction than another: per feature an edge offset e0 + c2 cos 2t + s2 sin 2t +
@@ -491,7 +511,8 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     4t terms let a block's corners round off apart from its sides) of standard deviations
     ``offset_sd`` (grid px; one number, or one each for e0, c2, s2, the 4t terms as c2 and
     s2; None: unknown). ``scale_sd``: the standard deviation of the log scale that the batch
-    knows (one magnification, ``refine``'s ``scale_prior``), or None.
+    knows (one magnification, ``refine``'s ``scale_prior``), or None. ``edge_sd``: how far
+    (grid px) one boundary pixel's place may be off, as one over EDGE_CORR_PX of edge.
 
     A geometric model: the predicted print's boundary (T at half its maximum), each
     boundary pixel displaced along its normal by the pose and by its feature's offsets, a
@@ -537,7 +558,7 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     k = lab[iy[ys, xs], ix[ys, xs]]
     c2, s2 = nx * nx - ny * ny, 2 * nx * ny
     Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
-    v = EDGE_SD**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
+    v = edge_sd**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
     if offset_sd is None:
         prior = np.zeros((6, 6))
     else:
