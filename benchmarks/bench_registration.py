@@ -423,8 +423,11 @@ def reprint(a) -> None:
             sys.exit(f"error: --reprint {src}: {need} is missing (a lab folder of a bench_registration.py --labs run)")
     cfg = read_yaml(truth / "lab_config.yaml")
     changes = [_set(cfg, kv) for kv in a.set or []]
+    out = Path(a.out or "benchmarks/out/registration_reprint")
+    if out.resolve() == src.resolve() or out.resolve() in src.resolve().parents:
+        sys.exit(f"error: --out {out} holds the lab it would reprint ({src}); it is emptied for a new run: choose another")
     try:
-        out = benchmark_output_dir(a.out or Path("benchmarks/out/registration_reprint"), script="benchmarks/bench_registration.py")
+        out = benchmark_output_dir(out, script="benchmarks/bench_registration.py")
     except InputError as exc:
         sys.exit(f"error: {exc}")
     write_yaml(out / "lab_config.yaml", cfg)

@@ -54,3 +54,22 @@ def test_a_lab_printed_again_from_its_config_is_the_same_and_a_change_changes_it
     # the camera and the pose are the lab's: only the print differs
     t = [read_yaml(tmp_path / d / "batch.truth" / "lab_config.yaml")["microscope"] for d in ("lab", "changed")]
     assert t[0] == t[1]
+
+
+def test_reprint_never_empties_the_folder_that_holds_the_lab(tmp_path):
+    from types import SimpleNamespace
+
+    from unscatter.io import _write_marker
+
+    bench = _bench()
+    lab = tmp_path / "run" / "lab_00"
+    for d in ("masks", "reg", "batch.truth"):
+        (lab / d).mkdir(parents=True)
+    (lab / "reg" / "qc.tsv").write_text("id\n")
+    (lab / "batch.truth" / "transforms.tsv").write_text("id\texposure\n")
+    write_yaml(lab / "batch.truth" / "lab_config.yaml", {"seed": 1})
+    _write_marker(tmp_path / "run", "benchmarks/bench_registration.py")  # the run's folder is the script's own output
+    for out in (tmp_path / "run", lab):
+        with pytest.raises(SystemExit, match="holds the lab it would reprint"):
+            bench.reprint(SimpleNamespace(reprint=lab, set=None, out=out, threads=1))
+        assert (lab / "reg" / "qc.tsv").is_file()

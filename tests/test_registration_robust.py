@@ -402,8 +402,8 @@ def test_feature_sizes_are_known_as_well_as_the_batch_shows():
 
 
 def test_edge_misfit_measures_how_far_the_images_edges_lie_from_the_templates():
-    """A disc imaged 1 px larger than its template reads about 1 px off; the same disc
-    under noise alone reads near 0 (the noise is taken out)."""
+    """A disc imaged 1 px (0.5 px) larger than its template reads about 1 px (0.5 px) off,
+    the template itself 0; the noise counts as misfit too (it only overstates)."""
     from types import SimpleNamespace
 
     import cv2
@@ -420,7 +420,9 @@ def test_edge_misfit_measures_how_far_the_images_edges_lie_from_the_templates():
     fit = SimpleNamespace(gain=3.0, offset=0.5)
     noise = np.random.default_rng(4).normal(0, 0.05, T.shape).astype(np.float32)
     assert edge_misfit(3.0 * disc(41.0) + 0.5 + noise, T, fit) == pytest.approx(1.0, abs=0.15)
-    assert edge_misfit(3.0 * disc(40.0) + 0.5 + noise, T, fit) < 0.1
+    assert edge_misfit(3.0 * disc(40.5) + 0.5, T, fit) == pytest.approx(0.5, abs=0.1)
+    assert edge_misfit(3.0 * T + 0.5, T, fit) < 0.01
+    assert 0.05 < edge_misfit(3.0 * T + 0.5 + noise, T, fit) < 0.25
     nan = np.full(T.shape, np.nan, np.float32)
     assert edge_misfit(nan, T, fit) == float("inf")
 

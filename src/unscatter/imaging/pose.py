@@ -486,21 +486,17 @@ WEAK_EDGE = 0.25  # boundary pixels with less than this share of the median slop
 def edge_misfit(img: np.ndarray, T: np.ndarray, fit: "Fit") -> float:
     """How far the image's edges lie from the fitted template's, as an RMS displacement
     (grid px): the residual's energy near the edges over the template's gradient energy
-    there, the image noise taken out. ``img`` is the image on ``T``'s grid (NaN outside
-    it). A residual that is not an edge's displacement (a stain, a brighter part of a
-    print) counts as one, so this overstates how far the edges are off; it is used only
-    where it is small (``size_spread``'s ``edge_sd``)."""
+    there. ``img`` is the image on ``T``'s grid (NaN outside it). Every residual counts as
+    an edge's displacement, the image noise, a stain or a brighter part of a print too,
+    so this overstates how far the edges are off; it is used only where it is small
+    (``size_spread``'s ``edge_sd``)."""
     P = fit.gain * T.astype(np.float64) + fit.offset
     gy, gx = np.gradient(P)
     g2 = gx * gx + gy * gy
     if not np.isfinite(img).any() or g2.max() <= 0:
         return float("inf")
-    near = cv2.dilate((g2 > 0.05 * g2.max()).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
-    win = near & np.isfinite(img)
-    flat = np.isfinite(img) & ~near & (T < 0.02 * float(T.max()))
-    noise = float(np.var(img[flat])) if np.count_nonzero(flat) >= 100 else 0.0
-    r2 = float(np.sum((img[win] - P[win]) ** 2)) - noise * np.count_nonzero(win)
-    return float(np.sqrt(max(r2, 0.0) / max(float(g2[win].sum()), 1e-12)))
+    win = (cv2.dilate((g2 > 0.05 * g2.max()).astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & np.isfinite(img)
+    return float(np.sqrt(float(np.sum((img[win] - P[win]) ** 2)) / max(float(g2[win].sum()), 1e-12)))
 
 
 def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD) -> float:
