@@ -432,10 +432,10 @@ def test_edge_places_are_known_as_well_as_the_batch_shows_but_never_worse_than_a
     from unscatter.imaging.pose import EDGE_SD
 
     s = Settings()
-    assert edge_place_sd([0.2, 0.25, 0.22, 0.9, float("inf")], s) == pytest.approx(0.235)
-    assert edge_place_sd([1.2, 1.5, 0.9, 1.1], s) == EDGE_SD  # a stain reads as misfit too: not taken as worse edges
-    assert edge_place_sd([0.01] * 6, s) == s.min_edge_sd
-    assert edge_place_sd([0.2] * (s.size_min_prints - 1), s) == EDGE_SD
+    assert edge_place_sd([0.2, 0.25, 0.22, 0.9, float("inf")], s)[0] == pytest.approx(0.235)
+    assert edge_place_sd([1.2, 1.5, 0.9, 1.1], s)[0] == EDGE_SD  # a stain reads as misfit too: not taken as worse edges
+    assert edge_place_sd([0.01] * 6, s)[0] == s.min_edge_sd
+    assert edge_place_sd([0.2] * (s.size_min_prints - 1), s)[0] == EDGE_SD
 
 
 def test_a_dot_row_is_placed_as_well_as_its_edges_are():

@@ -300,17 +300,19 @@ def size_error(fits: list, s: Settings) -> tuple[tuple, tuple]:
     return tuple(float(v) for v in centre), (float(max(s.min_size_sd, mad[0])), aniso, aniso)
 
 
-def edge_place_sd(misfits: list, s: Settings) -> float:
+def edge_place_sd(misfits: list, s: Settings) -> tuple[float, float | None]:
     """How far one boundary pixel's place may be off (``size_spread``'s ``edge_sd``): the
     fixed EDGE_SD (0.4 px), or less where the batch's prints whose pose their features'
     places fix (at least ``size_min_prints``) show, by their median ``edge_misfit``, that
     its template places edges closer than that; never below ``min_edge_sd``. The misfit
     counts every residual as an edge's displacement (a stain too), so it only lowers the
-    spread: a larger one is not taken as a measure of the edges."""
+    spread: a larger one is not taken as a measure of the edges. Returns (that spread,
+    the median misfit of the finite ones, None without any)."""
     m = [v for v in misfits if np.isfinite(v)]
+    median = float(np.median(m)) if m else None
     if len(m) < s.size_min_prints:
-        return EDGE_SD
-    return float(min(EDGE_SD, max(s.min_edge_sd, np.median(m))))
+        return EDGE_SD, median
+    return float(min(EDGE_SD, max(s.min_edge_sd, median))), median
 
 
 def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
@@ -704,9 +706,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def free_spread(mid):
         f = choices[mid].fit
         T = predicted_print(full, full.exposure(full.padded(masks[mid]), x), x, f)
-        img = cv2.warpAffine(smooth[mid], f.M, (grid, grid), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-        return T, size_spread(T, s.mode), edge_misfit(img, T, f)
+        return T, size_spread(T, s.mode), edge_misfit(warp_to_design(smooth[mid], f.M, grid), T, f)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
     placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
@@ -714,11 +714,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     centre, edge_sd = size_error(placed, s)
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
-    misfits = [spreads[mid][2] for mid in placed_ids]
-    place_sd = edge_place_sd(misfits, s)
-    edge_places = dict(sd=place_sd, median_misfit=float(np.median(misfits)) if misfits else None, prints=len(misfits))
+    place_sd, misfit = edge_place_sd([spreads[mid][2] for mid in placed_ids], s)
+    edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids))
     log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix)", place_sd,
-             "none" if not misfits else f"{edge_places['median_misfit']:.2f} px", len(misfits))
+             "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids))
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
     one_scale = batch_scale(placed, s)
     if one_scale is not None:
