@@ -10,7 +10,7 @@ import tifffile
 from unscatter import masks as patterns
 from unscatter.imaging import register_batch, transform_rms_px
 from unscatter.imaging.priors import image_pixel_size_um, rotation_range, scale_range
-from unscatter.io import InputError, read_tsv, write_png
+from unscatter.io import InputError, read_print, read_tsv, write_png
 from unscatter.lab import print_batch
 
 
@@ -380,6 +380,23 @@ def test_thin_lines_image_below_the_level_they_cured_at():
     assert imaged_peak(np.zeros((64, 64), np.uint8), 2.0) == 1.0
 
 
+def test_an_eroding_batchs_thin_lines_image_dimmer_still():
+    """Lines 6 px wide lose their peak as erosion thins them and vanish at 3 px; a block
+    keeps its peak; no erosion is the bare mask."""
+    from unscatter.imaging.batch import imaged_peak
+
+    lines = np.zeros((256, 256), np.uint8)
+    for y in range(40, 200, 16):
+        lines[y:y + 6, 40:200] = 255
+    block = np.zeros((256, 256), np.uint8)
+    block[60:200, 60:200] = 255
+    peaks = [imaged_peak(lines, 2.0, e) for e in (0.0, 1.0, 2.0, 2.9, 3.0)]
+    assert peaks[0] == imaged_peak(lines, 2.0) and peaks[0] > 0.8
+    assert peaks[0] > peaks[1] > peaks[2] > peaks[3] > 0 == peaks[4]
+    assert 0.3 < peaks[2] / peaks[0] < 0.45  # a line 2 px wide of the 6 images at about a third of it
+    assert imaged_peak(block, 2.0, 3.0) == pytest.approx(1.0, abs=1e-3)
+
+
 def cv2_blur(a, sigma):
     import cv2
 
@@ -659,3 +676,27 @@ def test_the_template_on_refinements_crop_equals_the_whole_grids():
                 assert np.abs(W[r0:r1, c0:c1] - P[r0 - a0:r1 - a0, c0 - b0:c1 - b0]).max() <= 1e-4 * scale
             if m is dot:
                 assert (a1 - a0) * (b1 - b0) < 0.15 * B.size
+
+
+def test_thin_lines_that_cured_in_an_eroding_batch_are_faint_not_empty(tmp_path):
+    """A batch that erodes its prints by 5 um under a microscope blur of 3 px: the lines
+    of a cut-off grating that cured image below the threshold (the bare mask's lines
+    would not) and must not be reported empty; gratings that did not cure stay empty."""
+    from unscatter.masks import grating_cutoff, trial_masks
+
+    m = tmp_path / "masks"
+    for k, v in trial_masks(6, seed=1).items():
+        write_png(m / f"{k}.png", v)
+    for j in range(3):
+        g = grating_cutoff(np.random.default_rng(j), pitch=8 + 2 * j, duty=0.4, variant="truncated")
+        write_png(m / f"cutoff_{j}.png", g)
+    over = {"printer": {"edge_offset_um": -5.1, "kernel": {"sigma_um": 7.3}},
+            "microscope": {"blur_px": [2.7, 3.0], "scale": [1.2, 1.25], "rotation_deg": 5.0}}
+    print_batch(m, tmp_path / "batch", overrides=over, seed=3, progress=False)
+    rows = {r["id"]: r for r in register_batch(tmp_path / "batch", tmp_path / "reg", skip_failed=True, progress=False)}
+    truth = {k: read_print(tmp_path / "batch.truth" / "prints" / f"{k}.png").mean() for k in rows}
+    assert truth["cutoff_2"] > 0.002 and rows["cutoff_2"]["status"] == "failed"
+    assert rows["cutoff_2"]["reason"].startswith("faint") and "eroded by" in rows["cutoff_2"]["reason"]
+    for k in ("cutoff_0", "cutoff_1"):
+        assert truth[k] == 0 and rows[k]["status"] == "empty"
+    assert all(rows[f"trial_{j:03d}"]["status"] == "ok" for j in range(6))

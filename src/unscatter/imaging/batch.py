@@ -444,13 +444,18 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
             if np.log(max(v, 1e-3)) > lim}
 
 
-def imaged_peak(mask: np.ndarray, blur: float) -> float:
+def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
     """The brightest a print of ``mask`` images at, as a share of its density, were every
-    exposed pixel to cure at the same density: the exposed area blurred by ``blur``
-    (design px), at its maximum. 1 for a print with a feature wider than a few blurs; less
-    for thin lines and small dots only."""
-    on = (mask > 0).astype(np.float32)
-    return float(cv2.GaussianBlur(on, (0, 0), max(blur, 0.3)).max()) if on.any() else 1.0
+    exposed pixel to cure at the same density: the exposed area, its edges moved in by
+    ``erode`` (design px; a batch that erodes its prints), blurred by ``blur`` (design px),
+    at its maximum. 1 for a print with a feature wider than a few blurs (and twice the
+    erosion); less for thin lines and small dots only, 0 where erosion leaves nothing."""
+    on = mask > 0
+    if not on.any():
+        return 1.0
+    if erode > 0:  # a boundary pixel's centre lies 1 px from the nearest unexposed one, its edge 0.5 px
+        on = np.clip(cv2.distanceTransform(on.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - erode, 0.0, 1.0)
+    return float(cv2.GaussianBlur(on.astype(np.float32), (0, 0), max(blur, 0.3)).max())
 
 
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
@@ -630,21 +635,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if fit_ids:
         x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
-    empty, faint = set(), {}
-    for mid, n_above in low.items():
-        peak = float(smooth[mid].max())
-        sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
-        reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)))
-        if np.isfinite(thr) and peak >= max(s.faint_fraction * reach * thr, 6 * corr[mid].noise):
-            # polymer this bright may have cured at the print level in features that the
-            # microscope's blur spreads below the threshold (thin lines, small dots): not
-            # evidence that nothing printed
-            faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
-                          f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level, would "
-                          f"image at {100 * reach:.0f} % of it: whether it printed cannot be told, and it is not empty")
-        else:
-            empty.add(mid)
-
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     def counted(mid) -> tuple:
         """The scales within which a pose counts (``choose_pose``): the searched range;
@@ -716,6 +706,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
     place_sd, misfit = edge_place_sd([spreads[mid][2] for mid in placed_ids], s)
     edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids))
+    feature_sizes = dict(edge_offset=centre[0], edge_sd=edge_sd[0], prints=len(placed))
     log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix)", place_sd,
              "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids))
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
@@ -788,6 +779,28 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     for mid, f in zip(todo, pool.map(held, todo)):
         choices[mid].fit = f
     del spreads
+
+    # 5d. an image too faint to register is empty only where nothing that its mask may have
+    # printed could image that bright: its features cured at the print level, their edges
+    # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
+    # and blurred by the microscope (thin lines of an eroding batch image far below the
+    # level they cured at)
+    erode = max(0.0, -(centre[0] - edge_sd[0]))
+    empty, faint = set(), {}
+    for mid, n_above in low.items():
+        peak = float(smooth[mid].max())
+        sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
+        reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)), erode)
+        if np.isfinite(thr) and peak >= max(s.faint_fraction * reach * thr, 6 * corr[mid].noise):
+            # polymer this bright may have cured at the print level in features that the
+            # microscope's blur spreads below the threshold (thin lines, small dots): not
+            # evidence that nothing printed
+            faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
+                          f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level"
+                          + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
+                          + f", would image at {100 * reach:.0f} % of it: whether it printed cannot be told, and it is not empty")
+        else:
+            empty.add(mid)
 
     # 6. warp, threshold, QC, write
     def finish(mid):
@@ -892,7 +905,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    measurement=measurement_record(p, rows, s.level),
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed)),
-                                                   edge_places=edge_places))
+                                                   edge_places=edge_places, feature_sizes=feature_sizes))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
     return rows
 
