@@ -409,7 +409,7 @@ def main(argv=None) -> None:
                     f"{','.join(bench_diagnosis.RANDOM_EFFECTS)}); default: random_lab's labs, many effects at once")
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide", help="with --effects: their magnitudes")
     ap.add_argument("--no-fiducials", dest="fiducials", action="store_false",
-                    help="designed masks without their registration marks (unscatter.design.fiducial_marks)")
+                    help="designed masks without their registration marks (unscatter.masks.fiducial_marks)")
     ap.add_argument("--diagnose", action="store_true", help="the residual diagnosis after each calibration")
     ap.add_argument("--sequential", action="store_true", help="with --diagnose: the next masks designed from the "
                     "last diagnosis, count by count, printed as new batches")

@@ -9,6 +9,7 @@ import torch
 from click.testing import CliRunner
 
 from unscatter import design as D
+from unscatter import masks as M
 from unscatter.cli import main
 from unscatter.io import list_pngs, read_mask, write_tsv
 from unscatter.model import default_params
@@ -100,17 +101,18 @@ def test_cli_masks_design(tmp_path):
 
 
 def test_designed_masks_carry_registration_marks_unless_told_not_to():
-    marks, clear = D.fiducial_marks(512)
-    assert marks.sum() == 3 * D.FIDUCIAL_PX**2 and (clear & ~marks).sum() > 0 and not (marks & ~clear).any()
+    marks, clear = M.fiducial_marks(512)
+    assert marks.sum() == 3 * M.FIDUCIAL_PX**2 and (clear & ~marks).sum() > 0 and not (marks & ~clear).any()
     # three corners only: no quarter turn maps them onto themselves
     assert all(not np.array_equal(marks, np.rot90(marks, k)) for k in (1, 2, 3))
     pool = D.candidate_pool(12, seed=2, size=SIZE, fiducials=True)
     plain = D.candidate_pool(12, seed=2, size=SIZE)
-    m, c = D.fiducial_marks(SIZE)
+    m, c = M.fiducial_marks(SIZE)
     for k in pool:
         assert (pool[k][m] == 255).all() and (pool[k][c & ~m] == 0).all()
         assert np.array_equal(pool[k][~c], plain[k][~c])  # the rest of the candidate is untouched
+        assert M.carries_marks(pool[k]) and not M.carries_marks(plain[k])
     r = D.design_masks(2, pool=6, draws=1, seed=1, size=SIZE, progress=False, compare=False)
-    assert all((mask[m] == 255).all() for mask in r["masks"].values())
+    assert all((mask[m] == 255).all() and M.carries_marks(mask) for mask in r["masks"].values())
     r = D.design_masks(2, pool=6, draws=1, seed=1, size=SIZE, progress=False, compare=False, fiducials=False)
     assert not all((mask[m] == 255).all() for mask in r["masks"].values())

@@ -621,7 +621,7 @@ def test_registration_marks_fix_the_pose_of_prints_that_cannot_fix_their_own(tmp
     grating's not curing is measured: its print holds the marks and nothing else."""
     import cv2
 
-    from unscatter.design import fiducial_marks, with_fiducials
+    from unscatter.masks import fiducial_marks, with_fiducials
     from unscatter.io import read_print
 
     rng = np.random.default_rng(5)
@@ -700,3 +700,32 @@ def test_thin_lines_that_cured_in_an_eroding_batch_are_faint_not_empty(tmp_path)
     for k in ("cutoff_0", "cutoff_1"):
         assert truth[k] == 0 and rows[k]["status"] == "empty"
     assert all(rows[f"trial_{j:03d}"]["status"] == "ok" for j in range(6))
+
+
+def test_the_registration_marks_alone_place_a_print_whose_body_pulls_the_pose():
+    """A marked mask whose body printed 2 px (each way) from where its mask puts it (a
+    template that misplaces a large feature): a fit of the whole print is pulled 2.6 px
+    off; refitted on the marks' cleared bands, the nuisance numbers held, it returns to
+    the marks."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import pose_distance, refine
+    from unscatter.imaging.template import PrintTemplate
+    from unscatter.masks import fiducial_marks, with_fiducials
+
+    body = np.zeros((512, 512), np.uint8)
+    body[150:420, 140:430] = 255
+    mask = with_fiducials(body)
+    marks, clear = fiducial_marks(512)
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    n = 512 + 2 * MARGIN
+    printed = np.where(marks, 255, np.where(clear, 0, np.roll(body, (2, 2), (0, 1)))).astype(np.uint8)
+    img = 0.1 + 0.8 * tmpl(tmpl.padded(printed), x)
+    img = (img + np.random.default_rng(1).normal(0, 0.02, img.shape)).astype(np.float32)
+    eye = np.hstack([np.eye(2), np.zeros((2, 1))])
+    B = tmpl.exposure(tmpl.padded(mask), x)
+    whole = refine(img, eye, tmpl, B, x, iters=30)
+    assert pose_distance(whole.M, eye, n, MARGIN) > 1.0
+    on_marks = refine(img, whole, tmpl, B, x, iters=30, region=np.pad(clear, MARGIN), hold_nuisance=True)
+    assert pose_distance(on_marks.M, eye, n, MARGIN) < 0.3 and on_marks.converged
+    assert np.array_equal(on_marks.q, whole.q) and on_marks.pose_sd < 0.5

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 
 from . import masks as M
+from .masks import with_fiducials
 from .settings import TRIAL_MASKS
 from .model import FixedMasks, Params, default_params, effect_names, extend_params, get_model, load_params, masks_to_tensor
 
@@ -166,43 +167,6 @@ def pattern(name: str):
     if name in M.TEST_PATTERNS:
         return M.TEST_PATTERNS[name]
     raise ValueError(f"unknown pool pattern {name!r}; known: {', '.join(POOL_PATTERNS)}")
-
-
-# Registration marks: three solid squares at full grey in three corners of the field,
-# with a cleared band around each. A print's pose then rests on three features far apart,
-# whatever the rest of the mask is: one block or dot whose scale only its size would set,
-# a star or grating that maps onto itself turned or shifted, a near-threshold feature that
-# may not cure at all (its not curing is then measured, not a failed registration). Large
-# enough to cure at the field's corners in a dim, strongly scattering lab (40 px: the
-# centre dose stays above 0.95 of the plateau up to a scatter sigma of 9 px, 26 um on the
-# paper's printer).
-FIDUCIAL_PX = 40
-FIDUCIAL_INSET_PX = 28  # from the field's edge to the mark
-FIDUCIAL_GUARD_PX = 20  # cleared around the mark (about twice a strong scatter's sigma)
-
-
-def fiducial_marks(size: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """(marks, cleared): boolean masks of the three registration marks (top left, top
-    right, bottom left: no turn of the field maps them onto themselves) and of the area
-    around them that no other feature may use; on a field of ``size`` px, the sizes
-    above scaled by size / 512."""
-    marks = np.zeros((size, size), bool)
-    clear = np.zeros((size, size), bool)
-    k = size / 512  # the sizes above are for the paper's 512 px field
-    w, a, g = (max(1, round(v * k)) for v in (FIDUCIAL_PX, FIDUCIAL_INSET_PX, FIDUCIAL_GUARD_PX))
-    for r, c in ((a, a), (a, size - a - w), (size - a - w, a)):
-        marks[r : r + w, c : c + w] = True
-        clear[max(0, r - g) : r + w + g, max(0, c - g) : c + w + g] = True
-    return marks, clear
-
-
-def with_fiducials(mask: np.ndarray) -> np.ndarray:
-    """``mask`` with the registration marks (``fiducial_marks``) and their cleared band."""
-    marks, clear = fiducial_marks(mask.shape[0])
-    out = mask.copy()
-    out[clear] = 0
-    out[marks] = 255
-    return out
 
 
 def candidate_pool(count: int, seed: int = 0, size: int = 512, patterns=POOL_PATTERNS, fiducials: bool = False) -> dict:

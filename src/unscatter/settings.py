@@ -262,7 +262,7 @@ TRIAL_MASKS = Stage(
     draws=_int(3, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
     fiducials=_bool(True, "designed: three registration marks (solid squares of 40 px at full grey in three corners, "
                     "a cleared band around them) on every designed mask, so that every print's pose rests on them "
-                    "whatever the rest of the mask is (unscatter.design.fiducial_marks)."),
+                    "whatever the rest of the mask is (unscatter.masks.fiducial_marks)."),
     next=_int(0, "Masks of the next print batch, designed around the diagnosis's model and the prints so far "
               "(sequential design, results/next_trial_masks/); 0 - none.", lo=0),
 )

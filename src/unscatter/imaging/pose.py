@@ -297,7 +297,7 @@ def _log_scale_row(n: int, mode: str) -> np.ndarray:
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
            tol: float = 0.01, spread: bool = True, prior: dict | None = None, scale_prior: tuple | None = None,
-           known: list | None = None) -> Fit:
+           known: list | None = None, region: np.ndarray | None = None, hold_nuisance: bool = False) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors).
 
@@ -320,6 +320,13 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     whose steps bring it within ``JOIN_PX`` of one of them stops there (``Fit.joined``):
     it would only end where that one did, after a walk of 2 px steps that is
     most of the work of a start far from its pose.
+
+    ``region``: a boolean image of tmpl's grid; only its pixels count in the residual (the
+    surroundings of a mask's registration marks, whatever the rest of the print does).
+    ``hold_nuisance``: the nuisance numbers stay at the given fit's (only the pose, gain
+    and offset are fitted, and the pose's spread is conditional on them): for a region
+    whose features cannot fix them (solid squares, whose dose, blur and edge offset
+    trade against each other and run away).
     """
     q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
@@ -349,12 +356,13 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     g = np.arange(n, dtype=np.float32) - np.float32(c)
     Xg, Yg = np.meshgrid(g[c0:c1], g[r0:r1])
     into = np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1.0]])  # window -> grid
+    counted = None if region is None else np.asarray(region, bool)[r0:r1, c0:c1]
     sigma, it, move, H_data, norm, r, w, npose = float("nan"), 0, float("inf"), None, None, None, None, 0
     for it in range(1, iters + 1):
         Iw = _warp(src, (Ms @ into)[:2], shape)
-        valid = np.isfinite(Iw)
-        T, dq = print_template(sub, B_sub, x, q)
-        T, dq = T[sl], [d[sl] for d in dq]
+        valid = np.isfinite(Iw) if counted is None else np.isfinite(Iw) & counted
+        T, dq = print_template(sub, B_sub, x, q, derivatives=not hold_nuisance)
+        T, dq = T[sl], [] if hold_nuisance else [d[sl] for d in dq]
         if gain is None:  # first pass: gain and offset by least squares
             A = np.stack([T[valid], np.ones(int(valid.sum()), np.float32)], 1)
             gain, offset = (float(v) for v in np.linalg.lstsq(A, Iw[valid], rcond=None)[0])
@@ -387,8 +395,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             rhs -= stiff * a * (ls - scale_prior[0])
         H = H_data.copy()
         kq = slice(npose + 2, None)
-        H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
-        rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
+        if not hold_nuisance:
+            H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
+            rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
         H[np.diag_indices_from(H)] += 1e-9 * np.trace(H) / len(H)
         delta = np.linalg.solve(H, rhs) / norm
         p = delta[:npose]
@@ -404,7 +413,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         Ms = h3(np.hstack([A_s @ (np.eye(2) + D), (A_s @ (t - D @ cvec) + t_s)[:, None]]))
         gain += float(delta[npose])
         offset += float(delta[npose + 1])
-        q = np.clip(q + delta[npose + 2 :], lo, hi)
+        if not hold_nuisance:
+            q = np.clip(q + delta[npose + 2 :], lo, hi)
         if move < tol:
             break
         if known:
