@@ -729,3 +729,15 @@ def test_the_registration_marks_alone_place_a_print_whose_body_pulls_the_pose():
     on_marks = refine(img, whole, tmpl, B, x, iters=30, region=np.pad(clear, MARGIN), hold_nuisance=True)
     assert pose_distance(on_marks.M, eye, n, MARGIN) < 0.3 and on_marks.converged
     assert np.array_equal(on_marks.q, whole.q) and on_marks.pose_sd < 0.5
+
+
+def test_every_print_of_one_magnification_is_held_within_the_medians_uncertainty():
+    """The batch's median scale is known far better than a single print's (the spread
+    over the root of the prints), never better than a zoom's repeatability (0.1 %)."""
+    from unscatter.imaging.batch import Settings, one_magnification_held
+
+    s = Settings()
+    centre, sd = one_magnification_held((0.05, 0.0024), 9, s)
+    assert centre == 0.05 and sd == pytest.approx(np.hypot(s.min_scale_sd, 0.0008))
+    assert s.min_scale_sd <= one_magnification_held((0.0, 0.001), 100, s)[1] < 0.00101
+    assert one_magnification_held((0.0, 0.004), 1, s)[1] > 0.004
