@@ -621,7 +621,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         dense, thr = declared_level(batch.meta.dense_level, dense, corr, ff_mode, s, batch_dir / "batch.yaml")
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
-    low = {}  # too little above the threshold to register: empty or faint (decided with the template, step 4)
+    low = {}  # too little above the threshold to register: empty or faint (decided after the poses, step 5e)
     for mid, k in corr.items():
         if mid in odd:
             continue
@@ -798,7 +798,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         choices[mid].fit = f
     del spreads
 
-    # 5e. a mask that carries the registration marks (designed trial masks): the pose is
+    # 5d. a mask that carries the registration marks (designed trial masks): the pose is
     # checked against one that rests on the marks alone (refitted from the chosen pose on
     # their cleared bands, the print's nuisance numbers held: three solid squares cannot fix
     # them), whatever the rest of the print does. A block of fine grating that cures in
@@ -830,7 +830,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         for mid, g in zip(marked, pool.map(on_marks, marked)):
             choices[mid].fit = g
 
-    # 5d. an image too faint to register is empty only where nothing that its mask may have
+    # 5e. an image too faint to register is empty only where nothing that its mask may have
     # printed could image that bright: its features cured at the print level, their edges
     # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
     # and blurred by the microscope (thin lines of an eroding batch image far below the
