@@ -661,6 +661,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
     full = PrintTemplate(design_px, MARGIN)
+    exposed = {}  # id -> the mask's scattered dose on the full grid, made once for steps 5b to 6
+
+    def exposure_of(mid) -> np.ndarray:
+        if mid not in exposed:
+            exposed[mid] = full.exposure(full.padded(masks[mid]), x)
+        return exposed[mid]
+
     known = {mid: pose_of(ch.fit.M, grid, smooth[mid].shape) for mid, ch in choices.items() if determined(ch, s)}
     one_rotation = batch_rotation([p["rotation_deg"] for p in known.values()], s)
 
@@ -689,7 +696,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             new = choose_pose(masks[mid], smooth[mid], tried + list(starts[mid][0]), x, s, design_px, sc, rot)
             if ch.evidence >= s.min_evidence:  # chosen again only for its rotation: kept where the image clearly
                 # prefers it to the pose within the batch's range (it then fails), never forced into the range
-                B = full.exposure(full.padded(masks[mid]), x)
+                B = exposure_of(mid)
                 z = evidence(smooth[mid], (ch.fit, predicted_print(full, B, x, ch.fit)), (new.fit, predicted_print(full, B, x, new.fit)))
                 if z >= s.min_evidence:
                     log.info("%s: turned %.1f deg off the batch's rotation, and the image prefers that pose (z = %.1f) to the "
@@ -708,7 +715,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # places fix their pose (``size_error``)
     def free_spread(mid):
         f = choices[mid].fit
-        T = predicted_print(full, full.exposure(full.padded(masks[mid]), x), x, f)
+        T = predicted_print(full, exposure_of(mid), x, f)
         return T, size_spread(T, s.mode), edge_misfit(warp_to_design(smooth[mid], f.M, grid), T, f)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
@@ -764,12 +771,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         sized = spreads[mid][1] > s.max_pose_sd
         edges = not merged and sized and len(placed) >= s.size_min_prints
         scaled = one_scale is not None
-        B = None  # the mask's scattered dose, made only for a print that is refitted
+        B = exposure_of(mid)
 
         def fit(held_at):  # (log scale, sd) or None
-            nonlocal B
-            if B is None:
-                B = full.exposure(full.padded(masks[mid]), x)
             f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
                        scale_prior=held_at)
             # QC asks whether the chosen pose converged; held to a scale, the refit answers for
@@ -811,8 +815,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     def on_marks(mid):
         f = choices[mid].fit
-        g = refine(smooth[mid], f, full, full.exposure(full.padded(masks[mid]), x), x, s.mode, iters=12, region=region,
-                   hold_nuisance=True)
+        g = refine(smooth[mid], f, full, exposure_of(mid), x, s.mode, iters=12, region=region, hold_nuisance=True)
         d = pose_distance(f.M, g.M, grid, MARGIN)
         if d <= s.marks_agree_px:
             return f
@@ -876,7 +879,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         M = to_design(ch.fit.M, MARGIN)
         pose = pose_of(M, design_px, k.c.shape)
         reg, printed = threshold_print(k.c, M, thr, design_px)
-        tpl = predicted_print(full, full.exposure(full.padded(mask), x), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
+        tpl = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
+        exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
