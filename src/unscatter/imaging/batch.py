@@ -20,7 +20,7 @@ from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
-from .template import PrintTemplate, blurred_mask, fit_template, ncc
+from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, ncc
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,8 @@ class Settings:
     # further than this from the whole print's takes the marks' pose
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
+    hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
+    # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
     threads: int = 2
     extra: dict = field(default_factory=dict)
@@ -646,7 +648,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     x = np.array(PrintTemplate.START)
     if fit_ids:
-        x, fit = fit_template(quarter, list(pool.map(pair, fit_ids)), x)
+        pairs = list(pool.map(pair, fit_ids))
+        x, fit = fit_template(quarter, pairs, x)
+        x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map)  # a lamp hot spot, where the prints show one
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     def counted(mid) -> tuple:
