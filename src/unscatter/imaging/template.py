@@ -367,9 +367,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     if len(x) < 17:
         x = np.r_[x, PrintTemplate.START[13:]]
     some, rest = pairs[::2], pairs[1::2]
-    if len(rest) < 3:
-        return x, fit
-    if not np.isfinite(min_gain):
+    if len(rest) < 3 or not np.isfinite(min_gain):
         return x, fit
     t0 = time.perf_counter()
     ff, other = FieldFit(tmpl, some, x), FieldFit(tmpl, rest, x)
@@ -387,7 +385,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     gains = (ff.mean_ncc(theta, d_hot) - ff.mean_ncc(base, doses), on_rest(theta) - on_rest(base))
     log.info("lamp hot spot: best %s gains mean NCC %.2g on the prints fitted, %.2g on the others (%.1f s)",
              np.round(theta[5:], 3), *gains, time.perf_counter() - t0)
-    if abs(theta[5]) < 0.02 or gains[1] < min_gain or gains[1] < gains[0] / 3:
+    if theta[5] < 0.02 or gains[1] < min_gain or gains[1] < gains[0] / 3:
         return x, fit
     every = FieldFit(tmpl, pairs, x)
     x1, f1 = fit_template(tmpl, pairs, every.numbers(every.fit(theta)[0]))
