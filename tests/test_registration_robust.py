@@ -769,8 +769,8 @@ def hot_spot_prints():
 def test_a_lamp_hot_spot_is_found_where_the_prints_show_one(hot_spot_prints):
     """The template fit without a hot spot, then the hot-spot search: it finds the bump
     (centre within 0.1 of the half field) and the fit gains. Powell over the field and
-    the bump from a grid of centres did not (80 evaluations per centre): the gain from a
-    50 % bump is 7e-4 of mean NCC, near Powell's tolerance."""
+    the bump from a grid of centres did not (80 evaluations per centre): a 50 % bump
+    gains under 1e-3 of mean NCC, near Powell's tolerance."""
     from unscatter.imaging.template import PrintTemplate, fit_hot_spot, fit_template, mean_ncc
 
     tmpl, truth, prints = hot_spot_prints
