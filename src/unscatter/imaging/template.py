@@ -93,7 +93,7 @@ class PrintTemplate:
         fx, fy, fxx, fxy, fyy = (float(v) for v in x[3:8])
         X, Y = self.X, self.Y
         field = 1 + fx * X + fy * Y + fxx * X * X + fxy * X * Y + fyy * Y * Y
-        if len(x) > 13 and float(x[13]) != 0.0:
+        if len(x) > 13 and float(x[13]) != 0.0:  # numbers recorded before the hot spot have 13
             field = field + float(np.clip(x[13], *self.HOT_BOUNDS[0])) * self.bump(x[14:17])
         return field
 
@@ -208,8 +208,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600) -> 
     k = len(step)  # the hot spot's numbers, if any, are held (``fit_hot_spot`` fits them)
 
     def cost(z):
-        x = np.r_[z * step, x0[k:]]
-        return -float(np.mean([ncc(reg, tmpl(m, x, d)) for m, reg, d in pairs]))
+        return -mean_ncc(tmpl, pairs, np.r_[z * step, x0[k:]])
 
     res = minimize(cost, x0[:k] / step, method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
     return np.r_[res.x * step, x0[k:]], -float(res.fun)
@@ -240,13 +239,13 @@ class FieldFit:
     def __init__(self, tmpl: PrintTemplate, pairs: list, x):
         self.tmpl, self.x = tmpl, np.asarray(x, float)
         X, Y = tmpl.X, tmpl.Y
-        polys = (X, Y, X * X, X * Y, Y * Y)
+        terms = (X, Y, X * X, X * Y, Y * Y)  # the field's quadratic terms (PrintTemplate.field), fx to fyy
         self.prints = []
         for m, reg, _ in pairs:
             ok = np.isfinite(reg)
             v = reg[ok] - reg[ok].mean()
             v = (v / np.sqrt((v * v).sum() + 1e-24)).astype(np.float32)
-            self.prints.append((m, ok, v, tmpl.scatter(m, self.x), [tmpl.scatter(m * p, self.x) for p in polys]))
+            self.prints.append((m, ok, v, tmpl.scatter(m, self.x), [tmpl.scatter(m * P, self.x) for P in terms]))
 
     def _print(self, theta, dose: float, p, jac: bool):
         """A print's residual (its image less the template's best gain and offset) at
@@ -335,7 +334,7 @@ class FieldFit:
 
     def numbers(self, theta):
         """The template numbers with the field (and hot spot) ``theta``."""
-        x = np.r_[self.x[:13], 0.0, 0.0, 0.0, HOT_WIDTH]
+        x = np.r_[self.x[:13], PrintTemplate.START[13:]]
         x[3:8] = theta[:5]
         if len(theta) > 5:
             x[13:17] = theta[5:9]
@@ -343,7 +342,7 @@ class FieldFit:
 
 
 HOT_CENTRES = tuple((cx, cy) for cy in (-0.6, 0.0, 0.6) for cx in (-0.6, 0.0, 0.6))
-HOT_WIDTH = 0.35
+HOT_WIDTH = PrintTemplate.START[16]  # the search's starting width
 
 
 def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None) -> tuple[np.ndarray, float]:
@@ -364,8 +363,6 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     (always with the hot spot's four; ``hot`` zero where there is none) and their fit.
     """
     x = np.asarray(x, float)
-    if len(x) < 17:
-        x = np.r_[x, PrintTemplate.START[13:]]
     some, rest = pairs[::2], pairs[1::2]
     if len(rest) < 3 or not np.isfinite(min_gain):
         return x, fit
