@@ -301,6 +301,45 @@ def test_predictive_gain_needs_a_correction_that_carries_to_new_prints():
     assert g_own < 0.02, g_own
 
 
+
+def test_field_gain_finds_a_hot_spot_common_to_the_prints_but_not_one_of_their_own():
+    """The position's predictive test (a smooth field of the margin fitted on training
+    prints) gains where every print has the same hot spot and loses where each print has
+    its own, of random place and sign, or none (cell-like noise alone)."""
+    from scipy import ndimage
+
+    from unscatter.diagnosis import field_gain
+
+    rng = np.random.default_rng(5)
+    B, n, cells = 16, 96, 8
+
+    def smooth(s):
+        x = ndimage.gaussian_filter(rng.standard_normal((n, n)), s)
+        return x / x.std()
+
+    margin = np.stack([0.3 * smooth(3) for _ in range(B)])  # every fold's fit: the true margin
+    r = np.minimum(np.arange(n) * cells // n, cells - 1)
+    cell = (r[:, None] * cells + r[None, :]).astype(np.int16)
+    geo = SimpleNamespace(names=["position"], labels={"position": [str(i) for i in range(cells * cells)]},
+                          bins=[{"position": np.where(np.abs(m) < 0.15, cell, -1).astype(np.int16)} for m in margin])
+    folds = [np.arange(i, B, 4) for i in range(4)]
+    margins = np.stack([margin] * len(folds)).astype(np.float16)
+    sims = margin >= 0
+    c = (np.arange(n) + 0.5) / n * 2 - 1
+    X, Y = np.meshgrid(c, c)
+
+    def spot(x0, y0):
+        return 0.15 * np.exp(-((X - x0) ** 2 + (Y - y0) ** 2) / (2 * 0.2**2))
+
+    noise = [0.03 * smooth(2) for _ in range(B)]
+    common = np.stack([m + spot(0.25, -0.25) + e >= 0 for m, e in zip(margin, noise)])
+    own = np.stack([m + rng.choice([-1, 1]) * spot(*rng.uniform(-0.8, 0.8, 2)) + e >= 0 for m, e in zip(margin, noise)])
+    none = np.stack([m + e >= 0 for m, e in zip(margin, noise)])
+    g = {k: field_gain(geo, p, sims, margins, folds) for k, p in (("common", common), ("own", own), ("none", none))}
+    assert g["common"] > 0.1, g
+    assert g["own"] < 0.005 and g["none"] < 0.005, g
+
+
 # ------------------------------------------------------------------------- the loop
 
 
