@@ -122,9 +122,11 @@ DEFAULTS = dict(
     max_rounds=5,
     alpha=0.01,  # structure test: sign-flip p-value below this ...
     structure_min=0.15,  # ... and excess systematic residual at least this share of the mismatch ...
-    structure_gain=0.015,  # ... and a per-bin correction (predictive_gain) removes this share of the held-out error
+    structure_gain=0.015,  # ... and a per-bin correction (predictive_gain; the position: field_gain) removes this
+    # share of the held-out error
     # (no-effect labs: 0 of 18 flagged at 1.5 % or at 3 %; outside effects that leave Eq. 1 0.01 or more below the
-    # lab's floor: 8 of 9 flagged at 1.5 %, 6 of 9 at 3 %; bench_diagnosis, 4 seeds)
+    # lab's floor: 8 of 9 flagged at 1.5 %, 6 of 9 at 3 %; bench_diagnosis, 4 seeds, with per-cell position offsets.
+    # With field_gain, 3 fresh seeds: no-effect labs 0 of 14 flagged, outside labs 7 of 14)
     permutations=999,
     radii_um=(10.0, 30.0, 100.0, 300.0),
     band_um=30.0,  # binned diagnostics (but the signed distance) use pixels this close to a mask edge
