@@ -2,7 +2,7 @@
 how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
-    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice]
+    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--trial designed]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
 reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
@@ -23,7 +23,10 @@ strong (``--strength strong``: the upper part only); "outside" labs hold one or 
 lamp hot spot, oxygen inhibition at edges, a kernel that widens with grey level). The
 summary adds the power study's tables: the confusion matrix, detection against the
 effect's size and against what Eq. 1 leaves to explain, false alarms and outside
-effects flagged (``--summarize labs.tsv`` reprints them).
+effects flagged (``--summarize labs.tsv`` reprints them). ``--trial designed`` prints as many
+designed trial masks (``design.design_masks`` at the prior, one design for every lab)
+instead of the paper's: run it with the same seed, N and effects as a paper run, and the
+labs and held-out masks are the same.
 "1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
 it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
 
@@ -311,14 +314,22 @@ def random_labs(args) -> None:
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
            + (f" --strength {args.strength}" if args.strength != "wide" else "")
-           + (f" --objective {args.objective}" if args.objective else ""))
+           + (f" --objective {args.objective}" if args.objective else "")
+           + (f" --trial {args.trial}" if args.trial != "paper" else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
     rng = np.random.default_rng(seed)
     order = []
     while len(order) < args.random_labs:  # every effect once per round, shuffled
         order += [effects[i] for i in rng.permutation(len(effects))]
-    trial = trial_masks(count, seed=0, size=size)
+    if args.trial == "designed":  # one design at the prior for every lab (as the paper masks are one draw)
+        from unscatter.design import design_masks
+
+        t0 = time.perf_counter()
+        trial = design_masks(count, seed=0, size=size, progress=False, compare=False)["masks"]
+        print(f"{count} designed trial masks in {time.perf_counter() - t0:.0f} s", flush=True)
+    else:
+        trial = trial_masks(count, seed=0, size=size)
     ho_masks = {f"paper_{k}": v for k, v in trial_masks(held, seed=seed % 100_000 + 1, size=size).items()}
     ho_masks.update(test_pattern_masks(held, seed=seed, size=size))
     lab_rows, print_rows = [], []
@@ -501,6 +512,9 @@ def main():
                     f"outside: one or two of {','.join(OUTSIDE_PHYSICS)}, or name one of them)")
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide",
                     help="random labs: effect magnitudes from barely detectable to strong (wide), or strong only")
+    ap.add_argument("--trial", choices=("paper", "designed"), default="paper",
+                    help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
+                         "the prior, the workflow's defaults)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()
