@@ -338,6 +338,12 @@ def test_field_gain_finds_a_hot_spot_common_to_the_prints_but_not_one_of_their_o
     g = {k: field_gain(geo, p, sims, margins, folds) for k, p in (("common", common), ("own", own), ("none", none))}
     assert g["common"] > 0.1, g
     assert g["own"] < 0.005 and g["none"] < 0.005, g
+    # the fitted field (for the figure) peaks at the hot spot
+    gain, field = field_gain(geo, common, sims, margins, folds, return_field=True)
+    assert gain == g["common"] and field.shape == (n, n)
+    r, col = np.unravel_index(np.argmax(field), field.shape)
+    assert np.hypot(c[col] - 0.25, c[r] + 0.25) < 0.15, (c[col], c[r])
+    assert field.max() > 0.05
 
 
 # ------------------------------------------------------------------------- the loop

@@ -605,7 +605,7 @@ def _logistic_fit(X: np.ndarray, y: np.ndarray, m: np.ndarray, w: np.ndarray, ri
 
 
 def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
-               n: int = 5, ridge: float = 1e-3, tau: float = 0.03, max_pixels: int = 200_000) -> float:
+               n: int = 5, ridge: float = 1e-3, tau: float = 0.03, max_pixels: int = 200_000, return_field: bool = False):
     """The share of the held-out error that a smooth field of the cure margin removes
     from prints it was not fitted on: ``predictive_gain`` for the position, with the
     per-cell offsets replaced by a smooth field (``field_basis``: n x n bumps) fitted per
@@ -618,13 +618,17 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     random labs (three seeds, 38 labs), the 6 outside labs with a hot spot of 0.18 to 0.39 gained
     1.0 to 11.8 % per cell and 3.2 to 20.3 % from the smooth field (one lab 11.3 against
     6.5 %); the 14 labs with no effect gained -14.5 to +0.1 % per cell and -8.2 to +1.7 %
-    from the smooth field, which the sign-flip test and the excess gate keep from a flag."""
+    from the smooth field, which the sign-flip test and the excess gate keep from a flag.
+
+    ``return_field``: also the fitted field (relative dose added to the margin, (H, W)),
+    the mean of the folds' fits, for the figure."""
     B, H, W = prints.shape
     w = np.ones(B) if weights is None else np.asarray(weights, float)
     total = float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(B)))
     if total == 0:
-        return 0.0
+        return (0.0, np.zeros((H, W), np.float32)) if return_field else 0.0
     Phi = field_basis((H, W), n)
+    fields = []
     near = [np.flatnonzero(g["position"].ravel() >= 0) for g in geo.bins]
     printed = [p.ravel()[k] > 0 for p, k in zip(prints, near)]
     removed = 0.0
@@ -643,9 +647,13 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
                           np.concatenate([margins[f, i].ravel()[k] for i, k in zip(train, pick)]).astype(np.float32),
                           np.concatenate([np.full(len(k), w[i], np.float32) for i, k in zip(train, pick)]), ridge, tau)
         field = Phi @ c.astype(np.float32)
+        fields.append(field)
         for i in np.flatnonzero(test):
             m, p = margins[f, i].ravel()[near[i]], printed[i]
             removed += w[i] * (np.count_nonzero((m >= 0) != p) - np.count_nonzero((m + field[near[i]] >= 0) != p))
+    if return_field:
+        mean = np.mean(fields, axis=0) if fields else np.zeros(H * W, np.float32)
+        return float(removed / total), mean.reshape(H, W)
     return float(removed / total)
 
 
@@ -667,9 +675,10 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
     sims, model = ho.sims, ho.model
     sums = residual_sums(geo, prints, sims)
     gains = predictive_gain(geo, prints, sims, margins, folds, weights)
+    field = None
     if "position" in gains:
-        gains["position"] = field_gain(geo, prints, sims, margins, folds, weights, s["field_basis"], s["field_ridge"],
-                                       s["margin_softness"])
+        gains["position"], field = field_gain(geo, prints, sims, margins, folds, weights, s["field_basis"], s["field_ridge"],
+                                              s["margin_softness"], return_field=True)
     for name in geo.names:
         S, A, N = sums[name]
         n = N.sum(0)
@@ -685,6 +694,7 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
                                 and t["predictive_gain"] >= s["structure_gain"])
         tests.append(dict(stage=stage, model=model, diagnostic=name, **t))
     sp = spectrum(geo, prints, sims)
+    sp["field"] = field  # the position's fitted margin field (field_gain), for the figure
     for j, f in enumerate(geo.freq):
         rows.append(dict(stage=stage, model=model, diagnostic="spectrum", bin=f"{f:.1f} cycles/mm", x=float(f), pixels=0, prints=len(prints),
                          residual_mean=float(sp["ratio"][j] - 1), mismatch=float("nan"), mtf_measured=float(sp["mtf_measured"][j]),
@@ -752,11 +762,19 @@ def _figure_diagnostics(path, geo: Geometry, stages: list, pixel_um: float) -> N
         mp = (S.sum(0) / np.maximum(N.sum(0), 1)).reshape(nc, nc)
         maps.append((label, mp))
         vmax = max(vmax, float(np.abs(mp).max()))
-    for label, mp in maps:
+    for (label, mp), (_, _, sp) in zip(maps, stages):
         ax = axes[k]
         k += 1
         im = ax.imshow(mp, cmap="RdBu_r", vmin=-vmax, vmax=vmax, extent=(-1, 1, 1, -1))
-        ax.set_title(f"position (DMD X, Y): {label}", fontsize=9)
+        title = f"position (DMD X, Y): {label}"
+        fld = sp.get("field")
+        if fld is not None and np.ptp(fld) > 0:  # the predictive test's smooth field (field_gain), as contours
+            H, W = fld.shape
+            cs = ax.contour((np.arange(W) + 0.5) / W * 2 - 1, (np.arange(H) + 0.5) / H * 2 - 1, 100 * fld, levels=6,
+                            colors="k", linewidths=0.6)
+            ax.clabel(cs, fontsize=6, fmt="%+.1f")
+            title += "\ncontours: fitted margin field (% dose)"
+        ax.set_title(title, fontsize=9)
         ax.set_xlabel("X", fontsize=8)
         ax.set_ylabel("Y", fontsize=8)
         fig.colorbar(im, ax=ax, fraction=0.046)
