@@ -24,9 +24,10 @@ lamp hot spot, oxygen inhibition at edges, a kernel that widens with grey level)
 summary adds the power study's tables: the confusion matrix, detection against the
 effect's size and against what Eq. 1 leaves to explain, false alarms and outside
 effects flagged (``--summarize labs.tsv`` reprints them). ``--trial designed`` prints as many
-designed trial masks (``design.design_masks`` at the prior, one design for every lab)
-instead of the paper's: run it with the same seed, N and effects as a paper run, and the
-labs and held-out masks are the same.
+designed trial masks (``design.design_masks`` at the prior, one design for every lab,
+with the registration marks the workflow prints on them) instead of the paper's, into a
+folder of its own (``..._designed``): run it with the same seed, N and effects as a paper
+run, and the labs and held-out masks are the same.
 "1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
 it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
 
@@ -309,7 +310,8 @@ def random_labs(args) -> None:
     count = args.count or 32
     held = args.heldout
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
-    root = Path(args.out or "benchmarks/out/diagnosis") / f"seed{seed}{'_quick' if args.quick else ''}{args.tag}"
+    root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
+                                                          f"{'_designed' if args.trial == 'designed' else ''}{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
@@ -514,7 +516,7 @@ def main():
                     help="random labs: effect magnitudes from barely detectable to strong (wide), or strong only")
     ap.add_argument("--trial", choices=("paper", "designed"), default="paper",
                     help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
-                         "the prior, the workflow's defaults)")
+                         "the prior, seed 0, the workflow's pool, draws and registration marks)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

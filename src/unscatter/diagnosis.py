@@ -833,6 +833,9 @@ def diagnose(prints_dirs, base_params, out_dir, folds: int | None = DIAGNOSIS.de
         s["folds"] = int(folds)
     if s["folds"] < 2:
         raise ValueError("the diagnosis needs k-fold held-out residuals: folds >= 2")
+    if not (int(s["field_basis"]) >= 2 and s["margin_softness"] > 0 and s["field_ridge"] >= 0):
+        raise ValueError(f"the position's field test needs field_basis >= 2 (bumps a side), margin_softness > 0 and "
+                         f"field_ridge >= 0; got {s['field_basis']}, {s['margin_softness']}, {s['field_ridge']}")
     threads = s["threads"] or os.cpu_count() or 1
     before = torch.get_num_threads()
     inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
@@ -1086,5 +1089,5 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     Path(path).write_text("\n".join(lines))
 
 
-__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "fold_spread", "structure_test", "predictive_gain", "geometry", "residual_sums", "spectrum",
+__all__ = ["diagnose", "DEFAULTS", "QUICK", "paired_bootstrap", "fold_spread", "structure_test", "predictive_gain", "field_gain", "geometry", "residual_sums", "spectrum",
            "Heldout", "ERROR"]
