@@ -505,8 +505,14 @@ def structure_test(S: np.ndarray, A: np.ndarray, N: np.ndarray, permutations: in
 OFFSETS = np.round(np.linspace(-0.4, 0.4, 81), 3)  # cure-margin corrections tried per bin (relative dose, 0 included)
 
 
+def _heldout_total(prints: np.ndarray, sims: np.ndarray, w: np.ndarray) -> float:
+    """The whole held-out error the predictive tests' gains are shares of: mismatched
+    pixels of every print, weighted per print as the objective is."""
+    return float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(len(prints))))
+
+
 def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
-                    offsets: np.ndarray = OFFSETS) -> dict:
+                    offsets: np.ndarray = OFFSETS, names=None) -> dict:
     """name -> the share of the held-out error that a correction along the diagnostic
     removes from prints it was not fitted on.
 
@@ -524,7 +530,8 @@ def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins
     printer predicts; a missing effect moves edges alike in every print and gives a gain.
 
     ``margins``: (k, B, H, W) every print's margin under each fold's fit
-    (``_Context.margins``); ``sims``: the held-out prints (each from its fold's fit).
+    (``_Context.margins``); ``sims``: the held-out prints (each from its fold's fit);
+    ``names``: the diagnostics to test (default: all of ``geo``'s).
     """
     B = len(prints)
     w = np.ones(B) if weights is None else np.asarray(weights, float)
@@ -536,15 +543,16 @@ def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins
     for f, idx in enumerate(folds):
         test[f, np.asarray(idx)] = 1
     # (role: 0 train / 1 held out, measured 0 / 1, fold, bin, threshold index j: printed at t_k iff k < j)
-    hist = {n: np.zeros((2, 2, F, len(geo.labels[n]), K + 1)) for n in geo.names}
-    ok = {n: [g[n].ravel() >= 0 for g in geo.bins] for n in geo.names}
-    total = float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(B)))
+    names = list(geo.names if names is None else names)
+    hist = {n: np.zeros((2, 2, F, len(geo.labels[n]), K + 1)) for n in names}
+    ok = {n: [g[n].ravel() >= 0 for g in geo.bins] for n in names}
+    total = _heldout_total(prints, sims, w)
     for i in range(B):
         p = prints[i].ravel().astype(np.int64)
-        base = {n: (p[ok[n][i]] * len(geo.labels[n]) + geo.bins[i][n].ravel()[ok[n][i]]) * (K + 1) for n in geo.names}
+        base = {n: (p[ok[n][i]] * len(geo.labels[n]) + geo.bins[i][n].ravel()[ok[n][i]]) * (K + 1) for n in names}
         for f in range(F):
             j = np.searchsorted(t, margins[f, i].ravel().astype(np.float32), side="right")
-            for n in geo.names:
+            for n in names:
                 nb = len(geo.labels[n])
                 code = test[f, i] * 2 * nb * (K + 1) + base[n] + j[ok[n][i]]
                 hist[n][:, :, f] += w[i] * np.bincount(code, minlength=4 * nb * (K + 1)).reshape(2, 2, nb, K + 1)
@@ -561,14 +569,20 @@ def predictive_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins
     return out
 
 
+def _field_axis(n: int) -> np.ndarray:
+    """The position (-1..1) of the centres of n pixels across the field, as the position
+    diagnostic's cells and its map's extent place them."""
+    return (np.arange(n) + 0.5) / n * 2 - 1
+
+
 def field_basis(shape: tuple, n: int) -> np.ndarray:
     """(H*W, n*n) Gaussian bumps on an n x n grid over the field (-1..1 both ways), each as
     wide as the grid's spacing: a smooth field of the position is a weighted sum of them."""
     H, W = shape
     c = np.linspace(-1, 1, n)
     h = c[1] - c[0]
-    gy = np.exp(-0.5 * ((((np.arange(H) + 0.5) / H * 2 - 1)[:, None] - c) / h) ** 2)
-    gx = np.exp(-0.5 * ((((np.arange(W) + 0.5) / W * 2 - 1)[:, None] - c) / h) ** 2)
+    gy = np.exp(-0.5 * ((_field_axis(H)[:, None] - c) / h) ** 2)
+    gx = np.exp(-0.5 * ((_field_axis(W)[:, None] - c) / h) ** 2)
     return (gy[:, None, :, None] * gx[None, :, None, :]).reshape(H * W, n * n).astype(np.float32)
 
 
@@ -624,7 +638,7 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     the mean of the folds' fits, for the figure."""
     B, H, W = prints.shape
     w = np.ones(B) if weights is None else np.asarray(weights, float)
-    total = float(sum(w[i] * np.count_nonzero(prints[i] != sims[i]) for i in range(B)))
+    total = _heldout_total(prints, sims, w)
     if total == 0:
         return (0.0, np.zeros((H, W), np.float32)) if return_field else 0.0
     Phi = field_basis((H, W), n)
@@ -674,9 +688,10 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
     rows, tests = [], []
     sims, model = ho.sims, ho.model
     sums = residual_sums(geo, prints, sims)
-    gains = predictive_gain(geo, prints, sims, margins, folds, weights)
+    # every binned diagnostic's per-bin correction but the position's, whose test is a smooth field
+    gains = predictive_gain(geo, prints, sims, margins, folds, weights, names=[n for n in geo.names if n != "position"])
     field = None
-    if "position" in gains:
+    if "position" in geo.names:
         gains["position"], field = field_gain(geo, prints, sims, margins, folds, weights, s["field_basis"], s["field_ridge"],
                                               s["margin_softness"], return_field=True)
     for name in geo.names:
@@ -770,7 +785,7 @@ def _figure_diagnostics(path, geo: Geometry, stages: list, pixel_um: float) -> N
         fld = sp.get("field")
         if fld is not None and np.ptp(fld) > 0:  # the predictive test's smooth field (field_gain), as contours
             H, W = fld.shape
-            cs = ax.contour((np.arange(W) + 0.5) / W * 2 - 1, (np.arange(H) + 0.5) / H * 2 - 1, 100 * fld, levels=6,
+            cs = ax.contour(_field_axis(W), _field_axis(H), 100 * fld, levels=6,
                             colors="k", linewidths=0.6)
             ax.clabel(cs, fontsize=6, fmt="%+.1f")
             title += "\ncontours: fitted margin field (% dose)"
