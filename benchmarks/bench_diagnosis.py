@@ -2,7 +2,8 @@
 how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
-    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--trial designed]
+    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice]
+        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
 reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
@@ -26,8 +27,10 @@ effect's size and against what Eq. 1 leaves to explain, false alarms and outside
 effects flagged (``--summarize labs.tsv`` reprints them). ``--trial designed`` prints as many
 designed trial masks (``design.design_masks`` at the prior, one design for every lab,
 with the registration marks the workflow prints on them) instead of the paper's, into a
-folder of its own (``..._designed``): run it with the same seed, N and effects as a paper
-run, and the labs and held-out masks are the same.
+folder of its own (``..._designed``; ``--tag`` tells variants apart): run it with the same
+seed, N and effects as a paper run, and the labs and held-out masks are the same.
+``--criterion`` and ``--noise`` choose the design's criterion and its model of the print
+noise (``design.NOISE``).
 "1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
 it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
 
@@ -317,7 +320,10 @@ def random_labs(args) -> None:
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
            + (f" --strength {args.strength}" if args.strength != "wide" else "")
            + (f" --objective {args.objective}" if args.objective else "")
-           + (f" --trial {args.trial}" if args.trial != "paper" else ""))
+           + (f" --trial {args.trial}" if args.trial != "paper" else "")
+           + (f" --criterion {args.criterion}" if args.trial == "designed" and args.criterion != "d" else "")
+           + (f" --noise {args.noise}" if args.trial == "designed" and args.noise else "")
+           + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
     rng = np.random.default_rng(seed)
@@ -325,10 +331,13 @@ def random_labs(args) -> None:
     while len(order) < args.random_labs:  # every effect once per round, shuffled
         order += [effects[i] for i in rng.permutation(len(effects))]
     if args.trial == "designed":  # one design at the prior for every lab (as the paper masks are one draw)
-        from unscatter.design import design_masks
+        from unscatter import design
 
+        if args.noise:
+            design.NOISE = args.noise
         t0 = time.perf_counter()
-        trial = design_masks(count, seed=0, size=size, progress=False, compare=False)["masks"]
+        trial = design.design_masks(count, seed=0, size=size, progress=False, compare=False,
+                                    criterion=args.criterion)["masks"]
         print(f"{count} designed trial masks in {time.perf_counter() - t0:.0f} s", flush=True)
     else:
         trial = trial_masks(count, seed=0, size=size)
@@ -517,6 +526,10 @@ def main():
     ap.add_argument("--trial", choices=("paper", "designed"), default="paper",
                     help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
                          "the prior, seed 0, the workflow's pool, draws and registration marks)")
+    ap.add_argument("--criterion", choices=("d", "discrimination"), default="d",
+                    help="--trial designed: the design's criterion (design.design_masks)")
+    ap.add_argument("--noise", choices=("edge", "pixel"), default=None,
+                    help="--trial designed: the design's model of the print noise (design.NOISE; default: its default)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

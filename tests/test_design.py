@@ -67,7 +67,7 @@ def test_greedy_has_diminishing_returns_and_prefers_information(params):
 def test_focus_is_the_schur_complement():
     A = np.array([[[4.0, 1.0], [1.0, 2.0]]])
     # information on parameter 0 after parameter 1: 4 - 1 * 1 / 2
-    assert D.criterion(A, focus=[0], focus_weight=1.0) == pytest.approx(np.log(np.linalg.det(A[0])) + np.log(3.5))
+    assert D.criterion_d(A, focus=[0], focus_weight=1.0) == pytest.approx(np.log(np.linalg.det(A[0])) + np.log(3.5))
 
 
 def test_undecided_effects_read_from_the_ranking(tmp_path):
@@ -96,6 +96,14 @@ def test_cli_masks_design(tmp_path):
     assert read_mask(masks["design_000"]).shape == (SIZE, SIZE)
     for f in ("design.tsv", "parameters.tsv", "design.yaml", "design.png"):
         assert (out / "design" / f).is_file()
+    assert not (out / "design" / "separation.tsv").exists()
+    res = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "disc"), "--count", "2", "--pool", "6", "--draws",
+                                    "1", "--size", str(SIZE), "--criterion", "discrimination", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    from unscatter.io import read_tsv
+
+    rows = read_tsv(tmp_path / "disc" / "design" / "separation.tsv")
+    assert len(rows) == 25 and {r["rival"] for r in rows} >= {"(none)", "edge_offset"}
     bad = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "x"), "--count", "9", "--pool", "4"])
     assert bad.exit_code == 2 and "--count" in bad.output and not (tmp_path / "x").exists()
 
@@ -116,3 +124,77 @@ def test_designed_masks_carry_registration_marks_unless_told_not_to():
     assert all((mask[m] == 255).all() and M.carries_marks(mask) for mask in r["masks"].values())
     r = D.design_masks(2, pool=6, draws=1, seed=1, size=SIZE, progress=False, compare=False, fiducials=False)
     assert not all((mask[m] == 255).all() for mask in r["masks"].values())
+
+
+def test_edge_noise_counts_an_edge_by_its_length_not_its_band_of_uncertain_pixels():
+    """A straight edge of a dose ramp: the weighted squared derivative of the smooth
+    print summed across it is (edge shift)^2 / (edge sd^2 CORRELATION_PX) per unit of
+    edge length, whatever the ramp's slope while the dose noise dominates, and it falls
+    where the floor EDGE_SD_PX dominates. The pixel model counts a shallow edge's wide
+    band as more information."""
+    T, w, per_px, n = 0.5, D.TEMPERATURE, 200, 40000
+    x = (np.arange(n) - n / 2) / per_px  # 200 samples per design pixel, +-100 px
+    out = {}
+    for slope in (0.004, 0.008, 0.5):  # dose per design pixel; the threshold shifted by 0.1 T
+        z = np.clip(slope * x / (w * T), -60, 60)
+        p = torch.as_tensor(1 / (1 + np.exp(-z)))[None, None, :].repeat(1, 3, 1)
+        dp = (p * (1 - p)) * 0.1 * T / (w * T)  # d p / d (threshold shift)
+        wts = D.pixel_weights(p, 1 / per_px).reshape(3, n)[1]
+        out[slope] = float((dp[0, 1] ** 2 * wts).sum() / per_px)  # per design pixel of edge length
+        shift, sd = 0.1 * T / slope, np.hypot(D.DOSE_NOISE * T / slope, D.EDGE_SD_PX)
+        assert out[slope] == pytest.approx(shift ** 2 / (sd ** 2 * D.CORRELATION_PX), rel=0.02)
+    assert out[0.004] == pytest.approx(out[0.008], rel=0.1) and out[0.5] < 0.2 * out[0.008]
+    pix = D.pixel_weights(p, 1 / 20.0, noise="pixel")
+    assert torch.allclose(pix, torch.full_like(pix, 1 / (D.PIXEL_VARIANCE * D.CORRELATION_PX ** 2)))
+    with pytest.raises(ValueError, match="noise model"):
+        D.pixel_weights(p, 1, noise="poisson")
+
+
+def _rivals(K=3):
+    # parameters 0..K-1: 0 and 1 belong to no effect, 2 is effect "b"'s; effects "a" (no parameter
+    # among the free ones but its column) and "b"
+    return D.Rivals(names=[f"p{i}" for i in range(K)], effects=["a", "b"], own={"a": [], "b": [2]}, base=[0, 1],
+                    prior_precision=np.full(K, 1e-9))
+
+
+def test_separation_is_what_the_rival_cannot_fit():
+    rng = np.random.default_rng(1)
+    n = 400
+    base = rng.normal(size=(n, 2))
+    b_par = rng.normal(size=n)
+    d_b = rng.normal(size=n)
+    inside = base @ np.array([0.7, -1.3]) + 0.5 * b_par  # effect a: Eq. 1 plus effect b's parameter reproduce it
+    apart = rng.normal(size=n)
+    apart -= np.column_stack([base, b_par, d_b]) @ np.linalg.lstsq(np.column_stack([base, b_par, d_b]), apart, rcond=None)[0]
+    rv = _rivals()
+    for d_a, expect_none, expect_b in ((inside, None, 0.0), (apart, float(apart @ apart), float(apart @ apart))):
+        C = np.column_stack([base, b_par, d_a, d_b])
+        G = (C.T @ C)[None]  # one draw
+        T = D.separation(G, rv)
+        if expect_none is None:
+            assert T[("a", None)][0] > 0.01 * float(d_a @ d_a)  # Eq. 1 alone cannot fit effect b's part
+        else:
+            assert T[("a", None)][0] == pytest.approx(expect_none, rel=1e-6)
+        assert T[("a", "b")][0] == pytest.approx(expect_b, abs=1e-6 * float(d_a @ d_a))
+    # the criterion rewards separating: the apart effect scores higher
+    Ci = np.column_stack([base, b_par, inside, d_b])
+    Ca = np.column_stack([base, b_par, apart * np.linalg.norm(inside) / np.linalg.norm(apart), d_b])
+    assert D.discrimination((Ca.T @ Ca)[None], rv) > D.discrimination((Ci.T @ Ci)[None], rv)
+
+
+def test_rivals_are_the_effects_the_model_lacks(params):
+    U, sd = D.design_prior(params, 1, seed=0)
+    rv = D.rivals_of(params, sd)
+    assert rv.effects == ["heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field", "edge_offset"]
+    assert [rv.names[j] for j in rv.base] == [k for k in params.free if k in ("c1", "c2", "c3", "c4", "sigma_px", "T")]
+    fitted = params.with_values(dose_gamma=1.2)
+    assert "dose_nonlinearity" not in D.rivals_of(fitted, sd).effects
+    assert len(rv.pairs()) == 5 * 5
+
+
+def test_discrimination_design_separates_effects_better_than_random_paper_masks():
+    r = D.design_masks(3, pool=10, draws=1, seed=1, size=SIZE, progress=False, criterion="discrimination")
+    assert len(r["masks"]) == 3 and r["criterion"] > r["criterion_paper"]
+    rows = r["separation"]
+    assert len(rows) == 25 and all(row["designed"] >= 0 and row["paper"] >= 0 for row in rows)
+    assert np.mean([np.log1p(row["designed"]) for row in rows]) > np.mean([np.log1p(row["paper"]) for row in rows])

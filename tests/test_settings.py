@@ -159,7 +159,7 @@ def test_package_defaults_follow_the_settings():
     assert benchmark.IDENTICAL_DOSES == tuple(S.BENCHMARK.default.doses)
     from unscatter.design import design_masks
 
-    for k in ("pool", "draws", "seed", "size"):
+    for k in ("pool", "draws", "seed", "size", "criterion"):
         assert _default(design_masks, k) == getattr(S.TRIAL_MASKS.default, k), k
 
 

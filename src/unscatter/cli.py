@@ -115,8 +115,9 @@ def masks_trial(out_dir, count, seed, size):
 @option(S.TRIAL_MASKS, "seed")
 @option(S.TRIAL_MASKS, "size")
 @option(S.TRIAL_MASKS, "fiducials")
+@option(S.TRIAL_MASKS, "criterion")
 @click.option("--progress/--no-progress", default=True, show_default=True)
-def masks_design(out_dir, count, model, prints, pool, draws, seed, size, fiducials, progress):
+def masks_design(out_dir, count, model, prints, pool, draws, seed, size, fiducials, criterion, progress):
     """Trial masks designed to teach the printer model the most (D-optimal; masks, design.tsv,
     parameters.tsv with the predicted parameter spread against random paper masks, design.png)."""
     _passive_threads()
@@ -125,7 +126,7 @@ def masks_design(out_dir, count, model, prints, pool, draws, seed, size, fiducia
     if count > pool:
         raise click.BadParameter(f"{count} masks cannot be chosen from a pool of {pool}", param_hint="--count")
     r = design_masks(count, model=model, prints=list(prints) or None, pool=pool, draws=draws, seed=seed, size=size,
-                     fiducials=fiducials, progress=progress)
+                     fiducials=fiducials, criterion=criterion, progress=progress)
     write_design(out_dir, r, inputs=[p for p in [model, *prints] if p is not None])
     paper = r.get("criterion_paper")
     click.echo(f"designed {count} masks from {pool} candidates in {r['seconds']:.0f} s: criterion {r['criterion']:.1f}"

@@ -11,12 +11,20 @@ of the simulated print to the parameters.
 - The model is the base model with every library effect added (``model.extend_params``),
   so the design also teaches the effects the diagnosis may have to name. Parameters are
   scaled to their bounds (u = (theta - lower) / (upper - lower)), so no unit dominates.
-- The information of one print at parameters u is F = J^T J / v with J the derivative of
-  the print (smooth threshold, ``TEMPERATURE``) with respect to u at every pixel, and v
-  the variance of a measured print pixel (``PIXEL_VARIANCE``, a binary pixel's largest)
-  times the area over which errors are correlated (``CORRELATION_PX``, a cell's size).
-  Only pixels near an edge that moves with a parameter contribute: near-threshold
-  features, fine gratings and corners carry the information, solid interiors none.
+- The information of one print at parameters u is F = sum over pixels of w J J^T, with J
+  the derivative of the print (smooth threshold, ``TEMPERATURE``) with respect to u and
+  w the pixel's weight under a model of the print's noise (``NOISE``, ``pixel_weights``).
+  Only pixels near an edge that moves with a parameter contribute; solid interiors none.
+  The default noise model is the edge's: cells scatter the dose (``DOSE_NOISE``) over
+  patches of a cell's size (``CORRELATION_PX``), which moves an edge by the dose noise
+  over the dose's gradient, on top of a floor of ``EDGE_SD_PX``. A shallow edge (a grey
+  level near the threshold, a grating whose lines merge in the dose) moves further with
+  a parameter and as much further with the noise: it prints as patches where the cells
+  push the dose across the threshold, and teaches no more per length of edge than a
+  steep one. The older model (``NOISE = "pixel"``: every uncertain pixel an independent
+  binary pixel) counted such a band's width of uncertain pixels as that many
+  measurements, and filled the designs with near-threshold areas whose patchy prints
+  then made up most of the diagnosis's held-out error.
 - The parameters are unknown before the prints, so the criterion is the mean of
   log det(prior precision + sum of F) over draws from a prior (``design_prior``): a
   design good for one printer only is not chosen. With a calibration (``--model``) the
@@ -26,6 +34,12 @@ of the simulated print to the parameters.
   extra weight (Ds-optimality on their parameters).
 - Masks are added greedily (each step the candidate that raises the criterion most),
   the standard approximation to exact D-optimal design; every step's gain is reported.
+- ``criterion="discrimination"`` adds a term for telling the library's effects apart
+  (``discrimination``): for every candidate effect at a size drawn from
+  ``EFFECT_SIZES`` and every rival (the model without it, or with one other effect in
+  its place), the lack of fit that the rival's best linearised fit leaves (Atkinson &
+  Fedorov's T-optimality), summed as log(1 + T) over the pairs. ``separation.tsv``
+  reports every pair for the design and for random paper masks.
 
 D-optimality (and not A- or E-optimality) because it is invariant to re-scaling each
 parameter, minimises the volume of the parameters' joint confidence region, and its
@@ -42,7 +56,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +74,18 @@ PIXEL_VARIANCE = 0.25  # variance of a binary print pixel at an uncertain edge (
 # Print errors are not independent from pixel to pixel: cells (10 to 15 um, 3 to 5 DMD
 # pixels) move an edge over a stretch. One independent error per CORRELATION_PX^2 pixels.
 CORRELATION_PX = 4
+# The edge model of the print noise (``NOISE = "edge"``): cells scatter the dose by
+# DOSE_NOISE (a share of T) over patches of CORRELATION_PX, which moves an edge by
+# DOSE_NOISE T / |grad D| as one over a patch, and the edge's measured place has a floor
+# of EDGE_SD_PX (registration, the camera's pixels). One independent measurement of the
+# edge's place per CORRELATION_PX of edge: a shallow edge (near-threshold grey, a thin
+# line's faint sides) moves further with a parameter, and as much further with the
+# noise, so it teaches no more than a steep one. ``NOISE = "pixel"``: every pixel near an
+# edge an independent binary pixel of PIXEL_VARIANCE per CORRELATION_PX^2, which counts a
+# shallow edge's wide band of uncertain pixels as that many measurements.
+NOISE = "edge"
+DOSE_NOISE = 0.03
+EDGE_SD_PX = 0.5
 STEP = 0.01  # finite-difference step, as a share of each parameter's bound range
 DECIMATION = 2  # Jacobians on every 2nd pixel
 
@@ -243,6 +269,63 @@ def design_prior(params: Params, draws: int, seed: int = 0, fitted: Params | Non
 
 
 # ---------------------------------------------------------------------- information
+def _print_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chunk: int, device, progress):
+    """Simulated prints (smooth threshold) of every mask in ``arr`` under every parameter
+    set of ``sets`` (dicts of every model value; ``per_draw`` consecutive sets belong to
+    one draw): yields (first mask, draw, prints (per_draw, b, h, w) float64, the grid's
+    step f in design pixels: each sample stands for f^2 pixels). One batched evaluation per block of masks, whose spectra are computed
+    once (``FixedMasks``); on every ``DECIMATION``-th pixel where the size allows."""
+    model = get_model(params.model)
+    device = torch.device(device or "cpu")
+    theta = model.theta({k: [d[k] for d in sets] for k in model.names}, device)
+    support = 1.01 * max(model.support_px(d) for d in sets)  # margin: theta is float32
+    S, B = len(sets) // per_draw, len(arr)
+    for b0 in range(0, B, chunk):
+        sim = FixedMasks(model, masks_to_tensor(arr[b0:b0 + chunk], device), support_px=support)
+        if sim.full_shape[0] % DECIMATION == 0 and sim.full_shape[1] % DECIMATION == 0:
+            sim = sim.decimated(DECIMATION)
+        for s in range(S):  # one draw at a time keeps the temporaries small
+            sub = {k: v[s * per_draw:(s + 1) * per_draw] for k, v in theta.items()}
+            with torch.no_grad():
+                yield b0, s, sim.prints(sub, TEMPERATURE).double(), sim.f
+        if progress:
+            progress(min(b0 + chunk, B), B)
+
+
+def pixel_weights(p: torch.Tensor, f: int, noise: str | None = None) -> torch.Tensor:
+    """(b, n) weight of each pixel's squared print derivative in the information, for the
+    smooth prints ``p`` (b, h, w) at every ``f``-th design pixel (see ``NOISE``).
+
+    Edge model: with g = |grad p| / (p (1 - p)) = |grad D| / (TEMPERATURE T) per design
+    pixel, the weight 6 g / (CORRELATION_PX (r^2 + EDGE_SD_PX^2 g^2)), r = DOSE_NOISE /
+    TEMPERATURE, sums (across an edge, where the integral of the logistic's squared slope
+    is 1/6) to (edge shift)^2 / (edge sd^2 CORRELATION_PX) per unit length of edge, the
+    edge sd being sqrt((DOSE_NOISE T / |grad D|)^2 + EDGE_SD_PX^2)."""
+    noise = noise or NOISE
+    b = p.shape[0]
+    if noise == "pixel":
+        return torch.full((b, p[0].numel()), 1.0 / (PIXEL_VARIANCE * CORRELATION_PX ** 2), dtype=p.dtype, device=p.device)
+    if noise != "edge":
+        raise ValueError(f"unknown noise model {noise!r}: edge or pixel")
+    gy, gx = torch.gradient(p, dim=(-2, -1))
+    s = (p * (1 - p)).clamp_min(1e-9)
+    g = torch.sqrt(gx ** 2 + gy ** 2) / (s * f)
+    r = DOSE_NOISE / TEMPERATURE
+    return (6.0 * g / (CORRELATION_PX * (r ** 2 + EDGE_SD_PX ** 2 * g ** 2))).reshape(b, -1)
+
+
+def _values_at(params: Params, names, u) -> dict:
+    lo, rng_ = _unit(params, names)
+    out = dict(params.values)
+    out.update({k: float(lo[j] + u[j] * rng_[j]) for j, k in enumerate(names)})
+    return out
+
+
+def _steps(U: np.ndarray) -> np.ndarray:
+    """Forward-difference steps in bound units (backward at an upper bound)."""
+    return np.where(U + STEP <= 1.0, STEP, -STEP)
+
+
 def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: int = 8, device=None,
                 progress=None) -> np.ndarray:
     """(S, B, K, K) Fisher information of each mask's print about the free parameters
@@ -250,41 +333,164 @@ def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: 
     CORRELATION_PX^2) over the print's pixels (see the module doc).
 
     J by forward differences (backward at an upper bound): all K + 1 parameter sets of
-    all draws in one batched evaluation per block of masks, whose spectra are computed
-    once (``FixedMasks``)."""
+    all draws in one batched evaluation per block of masks (``_print_sets``)."""
     arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
     names = params.free
-    model = get_model(params.model)
-    lo, rng_ = _unit(params, names)
     K, S, B = len(names), len(U), len(arr)
-    device = torch.device(device or "cpu")
-    sets, steps = [], np.empty((S, K))
+    steps = _steps(U)
+    sets = []
     for s in range(S):
-        base = dict(params.values)
-        base.update({k: float(lo[j] + U[s, j] * rng_[j]) for j, k in enumerate(names)})
-        sets.append(base)
-        for j, k in enumerate(names):
-            u = U[s, j] + STEP if U[s, j] + STEP <= 1.0 else U[s, j] - STEP
-            steps[s, j] = u - U[s, j]
-            sets.append({**base, k: float(lo[j] + u * rng_[j])})
-    theta = model.theta({k: [d[k] for d in sets] for k in model.names}, device)
-    support = 1.01 * max(model.support_px(d) for d in sets)  # margin: theta is float32
-    step = torch.as_tensor(steps, dtype=torch.float64, device=device)
+        sets.append(_values_at(params, names, U[s]))
+        for j in range(K):
+            sets.append(_values_at(params, names, U[s] + steps[s, j] * (np.arange(K) == j)))
     out = np.zeros((S, B, K, K))
-    for b0 in range(0, B, chunk):
-        sim = FixedMasks(model, masks_to_tensor(arr[b0:b0 + chunk], device), support_px=support)
-        if sim.full_shape[0] % DECIMATION == 0 and sim.full_shape[1] % DECIMATION == 0:
-            sim = sim.decimated(DECIMATION)
-        for s in range(S):  # one draw at a time keeps the temporaries small
-            sub = {k: v[s * (K + 1):(s + 1) * (K + 1)] for k, v in theta.items()}
-            with torch.no_grad():
-                p = sim.prints(sub, TEMPERATURE).double()  # (K + 1, b, h, w)
-            J = ((p[1:] - p[:1]) / step[s][:, None, None, None]).flatten(2)  # (K, b, n)
-            F = torch.einsum("kbn,lbn->bkl", J, J) * (sim.f ** 2) / (PIXEL_VARIANCE * CORRELATION_PX ** 2)
-            out[s, b0:b0 + F.shape[0]] = F.cpu().numpy()
-        if progress:
-            progress(min(b0 + chunk, B), B)
+    for b0, s, p, f in _print_sets(arr, params, sets, K + 1, chunk, device, progress):
+        J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype)[:, None, None, None]).flatten(2)  # (K, b, n)
+        F = torch.einsum("kbn,lbn,bn->bkl", J, J, pixel_weights(p[0], f)) * f ** 2
+        out[s, b0:b0 + F.shape[0]] = F.cpu().numpy()
     return out
+
+
+# ------------------------------------------------------------ telling effects apart
+# The sizes of the library's effects that a design for telling them apart aims at: from
+# about the smallest the diagnosis should name to moderate ones (a design that separates
+# small effects separates large ones too; a draw near an effect's neutral value teaches
+# nothing about it). Per parameter: ("pm", a, b) a magnitude uniform in [a, b] with a random
+# sign; ("log_inv", a, b) log-uniform in [a, b], inverted with probability 1/2; or a
+# ``PRIOR`` kind.
+EFFECT_SIZES = {
+    "tail_fraction": ("uniform", 0.08, 0.3), "tail_length_px": ("log", 5.0, 30.0),
+    "aniso_ratio": ("log_inv", 1.12, 1.4), "aniso_angle_deg": ("uniform", -45.0, 45.0),
+    "dose_gamma": ("log_inv", 1.12, 1.35),
+    "ill_xy": ("normal", 0.0, 0.06), "ill_xr2": ("normal", 0.0, 0.06), "ill_yr2": ("normal", 0.0, 0.06),
+    "ill_r4": ("pm", 0.08, 0.2),
+    "edge_offset_px": ("pm", 0.5, 2.0),
+}
+RIVAL_PRECISION = 1.0  # prior precision of the share of a rival effect's drawn size that its fit may use
+
+
+def _draw(kind: str, a: float, b: float, g: np.random.Generator, n: int) -> np.ndarray:
+    if kind == "log":
+        return np.exp(g.uniform(math.log(a), math.log(b), n))
+    if kind == "uniform":
+        return g.uniform(a, b, n)
+    if kind == "normal":
+        return a + b * g.standard_normal(n)
+    if kind == "pm":
+        return g.uniform(a, b, n) * g.choice([-1.0, 1.0], n)
+    if kind == "log_inv":
+        return np.exp(g.uniform(math.log(a), math.log(b), n) * g.choice([-1.0, 1.0], n))
+    raise ValueError(f"unknown kind of draw {kind!r}")
+
+
+@dataclass
+class Rivals:
+    """The columns of a discrimination Gram matrix (``discrimination_gram``): the free
+    parameters ``names`` (bound units, at the null point: the candidate effects neutral),
+    then one column per candidate effect (its print change at a drawn size)."""
+
+    names: list
+    effects: list  # the candidate effects, in column order after the parameters
+    own: dict  # effect -> indices of its parameters among ``names``
+    base: list  # indices of the parameters that belong to no candidate effect
+    prior_precision: np.ndarray  # (K,) of the parameters, bound units
+
+    def column(self, effect: str) -> int:
+        return len(self.names) + self.effects.index(effect)
+
+    def pairs(self) -> list:
+        """(effect, rival, columns the rival's fit may use): the rival is the model
+        without the candidate effects (None) or with one other effect (its parameters and
+        the secant to its drawn size)."""
+        out = []
+        for e in self.effects:
+            out.append((e, None, list(self.base)))
+            for r in self.effects:
+                if r != e:
+                    out.append((e, r, list(self.base) + list(self.own[r]) + [self.column(r)]))
+        return out
+
+
+def rivals_of(params: Params, sd: np.ndarray) -> Rivals:
+    """The candidate effects of a design for ``params``: the library's effects whose
+    parameters are all at their neutral values (those a diagnosis of it may still add)."""
+    from .model import EFFECTS, split_model_name
+
+    names = params.free
+    base_names = set(get_model(split_model_name(params.model)[0]).specs)  # an effect may replace a base term (sigma_px)
+    effects, own = [], {}
+    for e, spec in EFFECTS.items():
+        added = [p for p in spec.params if p.name in names and p.name not in base_names]
+        idx = [names.index(p.name) for p in added]
+        if idx and all(abs(float(params.values[p.name]) - float(p.default)) < 1e-12 for p in added):
+            effects.append(e)
+            own[e] = idx
+    used = {j for idx in own.values() for j in idx}
+    return Rivals(list(names), effects, own, [j for j in range(len(names)) if j not in used], 1.0 / np.asarray(sd) ** 2)
+
+
+def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray, rivals: Rivals, seed: int = 0,
+                        chunk: int = 8, device=None, progress=None) -> np.ndarray:
+    """(S, B, Q, Q) Gram matrix of each mask's print columns at each of the S draws (in
+    the information's units: / (PIXEL_VARIANCE * CORRELATION_PX^2)): the derivatives with
+    respect to the K free parameters at the draw's null point (``U`` with the candidate
+    effects neutral), then each candidate effect's print change at a size drawn from
+    ``EFFECT_SIZES``. Q = K + candidate effects. Sums over masks: a design's Gram is the
+    sum of its masks'."""
+    arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
+    names = rivals.names
+    K, S, B, E = len(names), len(U), len(arr), len(rivals.effects)
+    lo, rng_ = _unit(params, names)
+    U0 = U.copy()
+    for e in rivals.effects:
+        for j in rivals.own[e]:
+            U0[:, j] = (float(params.values[names[j]]) - lo[j]) / rng_[j]
+    g = np.random.default_rng([seed, 78])
+    steps = _steps(U0)
+    sets = []
+    for s in range(S):
+        null = _values_at(params, names, U0[s])
+        sets.append(null)
+        for j in range(K):
+            sets.append(_values_at(params, names, U0[s] + steps[s, j] * (np.arange(K) == j)))
+        for e in rivals.effects:
+            v = dict(null)
+            for j in rivals.own[e]:
+                k = names[j]
+                kind, a, b = EFFECT_SIZES.get(k, PRIOR.get(k, ("uniform",) + tuple(params.bounds[k])))
+                v[k] = float(np.clip(_draw(kind, a, b, g, 1)[0], *params.bounds[k]))
+            sets.append(v)
+    out = np.zeros((S, B, K + E, K + E))
+    for b0, s, p, f in _print_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
+        J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype)[:, None, None, None]
+        C = torch.cat([J, p[K + 1:] - p[:1]]).flatten(2)  # (Q, b, n)
+        G = torch.einsum("kbn,lbn,bn->bkl", C, C, pixel_weights(p[0], f)) * f ** 2
+        out[s, b0:b0 + G.shape[0]] = G.cpu().numpy()
+    return out
+
+
+def separation(G: np.ndarray, rivals: Rivals) -> dict:
+    """{(effect, rival): (..., S) lack of fit}: what remains of the effect's print change
+    (at its drawn size) after the rival's best linear fit, in units of the print noise's
+    variance (a chi-square: near 1 or below, the rival absorbs the effect within the noise).
+    T = d'd - b' (G_RR + P_R)^-1 b, with P_R the rival's prior precision (its parameters',
+    ``RIVAL_PRECISION`` for the share of its own size): Atkinson & Fedorov's (1975)
+    T-optimality criterion, linearised. ``G``: (..., S, Q, Q) from ``discrimination_gram``."""
+    out = {}
+    for e, r, cols in rivals.pairs():
+        q = rivals.column(e)
+        prec = np.array([rivals.prior_precision[c] if c < len(rivals.names) else RIVAL_PRECISION for c in cols])
+        A = G[..., cols, :][..., :, cols] + np.diag(prec)
+        b = G[..., cols, q]
+        out[(e, r)] = G[..., q, q] - np.einsum("...i,...i->...", b, np.linalg.solve(A, b[..., None])[..., 0])
+    return out
+
+
+def discrimination(G: np.ndarray, rivals: Rivals) -> np.ndarray:
+    """Mean over draws of sum over (effect, rival) pairs of log(1 + T): every effect is to
+    stand out from the model without it and from every other effect in its place, and
+    the log spends prints where a pair is least apart (``separation``). (..., S, Q, Q) -> (...)."""
+    return sum(np.log1p(np.clip(T, 0.0, None)) for T in separation(G, rivals).values()).mean(axis=-1)
 
 
 def _logdet(A: np.ndarray) -> np.ndarray:
@@ -292,7 +498,7 @@ def _logdet(A: np.ndarray) -> np.ndarray:
     return np.where(sign > 0, ld, -np.inf)
 
 
-def criterion(A: np.ndarray, focus: list[int] | None = None, focus_weight: float = 1.0) -> np.ndarray:
+def criterion_d(A: np.ndarray, focus: list[int] | None = None, focus_weight: float = 1.0) -> np.ndarray:
     """Mean over draws of log det A (D-optimality), plus ``focus_weight`` times log det of
     the information on the ``focus`` parameters after the others are accounted for
     (Ds-optimality: the Schur complement). ``A``: (..., S, K, K) -> (...)."""
@@ -322,31 +528,48 @@ class Design:
     sd: np.ndarray  # (K,) predicted parameter sd (bound units) with the chosen masks
     names: list  # the parameters
     prior_sd: np.ndarray
+    separation: dict = field(default_factory=dict)  # (effect, rival) -> mean T with the chosen masks (``separation``)
 
 
 def greedy(F: np.ndarray, ids: list, count: int, prior_precision: np.ndarray, focus=None, focus_weight: float = 1.0,
-           start: np.ndarray | None = None) -> Design:
+           start: np.ndarray | None = None, G: np.ndarray | None = None, rivals: Rivals | None = None,
+           G_start: np.ndarray | None = None) -> Design:
     """Choose ``count`` masks greedily by the criterion. ``F``: (S, B, K, K) information
     of the candidates; ``prior_precision``: (K, K) or (S, K, K); ``start``: (S, K, K)
-    information of prints already made."""
+    information of prints already made. With ``G`` ((S, B, Q, Q), ``discrimination_gram``)
+    and ``rivals`` the criterion adds ``discrimination`` (``G_start``: the prints already
+    made)."""
     S, B, K, _ = F.shape
     A = np.broadcast_to(prior_precision, (S, K, K)).copy()
     if start is not None:
         A = A + start
+    disc = G is not None and rivals is not None and bool(rivals.effects)
+    if disc:
+        Gacc = np.zeros((S,) + G.shape[2:]) if G_start is None else G_start.copy()
+
+    def value(A_, G_):
+        return criterion_d(A_, focus, focus_weight) + (discrimination(G_, rivals) if disc else 0.0)
+
     chosen, gains = [], []
-    current = float(criterion(A, focus, focus_weight))
+    current = float(value(A, Gacc if disc else None))
     free = np.ones(B, bool)
     for _ in range(min(count, B)):
         trial = A[None] + np.swapaxes(F, 0, 1)  # (B, S, K, K)
-        val = criterion(trial, focus, focus_weight)
+        gtrial = Gacc[None] + np.swapaxes(G, 0, 1) if disc else None
+        val = value(trial, gtrial)
         val[~free] = -np.inf
         b = int(np.argmax(val))
         gains.append(float(val[b] - current))
         current = float(val[b])
         A = trial[b]
+        if disc:
+            Gacc = gtrial[b]
         free[b] = False
         chosen.append(ids[b])
-    return Design(chosen, gains, current, posterior_sd(A), [], np.zeros(0))
+    d = Design(chosen, gains, current, posterior_sd(A), [], np.zeros(0))
+    if disc:
+        d.separation = {k: float(v.mean()) for k, v in separation(Gacc, rivals).items()}
+    return d
 
 
 # ------------------------------------------------------------------------ the command
@@ -369,7 +592,8 @@ def undecided_effects(diagnosis_dir) -> list[str]:
 def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS.default.pool,
                  draws: int = TRIAL_MASKS.default.draws, seed: int = TRIAL_MASKS.default.seed,
                  size: int = TRIAL_MASKS.default.size, fiducials: bool = TRIAL_MASKS.default.fiducials,
-                 focus_weight: float = 1.0, compare: bool = True, progress: bool = True, device=None) -> dict:
+                 criterion: str = TRIAL_MASKS.default.criterion, focus_weight: float = 1.0, compare: bool = True,
+                 progress: bool = True, device=None) -> dict:
     """Choose ``count`` trial masks from a pool of ``pool`` candidates (see the module doc).
 
     ``model``: a calibration's params.yaml or a diagnosis folder (sequential design), or
@@ -379,7 +603,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
     (Design), table (rows per chosen mask), sd (rows per parameter: prior, designed,
     random paper masks of the same count), focus, seconds.
     """
-    TRIAL_MASKS.make(count=count, pool=pool, draws=draws, seed=seed, size=size)
+    TRIAL_MASKS.make(count=count, pool=pool, draws=draws, seed=seed, size=size, criterion=criterion)
     t0 = time.perf_counter()
     fitted, focus_effects = None, []
     if model is not None:
@@ -406,8 +630,14 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
 
         data = load_prints(prints)
         start = information(data.masks, params, U, device=device).sum(axis=1)
+    rivals = G = G_start = None
+    if criterion == "discrimination":
+        rivals = rivals_of(params, sd0)
+        G = discrimination_gram(cands, params, U, rivals, seed, device=device)
+        if prints:
+            G_start = discrimination_gram(data.masks, params, U, rivals, seed, device=device).sum(axis=1)
     ids = list(cands)
-    d = greedy(F, ids, count, prior_precision, focus, focus_weight, start)
+    d = greedy(F, ids, count, prior_precision, focus, focus_weight, start, G, rivals, G_start)
     d.names, d.prior_sd = names, sd0
     table = [dict(id=f"design_{i:03d}", candidate=c, pattern=c.rsplit("_", 1)[0], gain=g)
              for i, (c, g) in enumerate(zip(d.ids, d.gains))]
@@ -415,7 +645,8 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
     sd_rows = [dict(parameter=k, prior_sd=float(sd0[j] * _unit(params, names)[1][j]),
                     designed_sd=float(d.sd[j] * _unit(params, names)[1][j])) for j, k in enumerate(names)]
     result = dict(masks=out_masks, design=d, table=table, sd=sd_rows, focus=focus_effects, model=params.model,
-                  draws=U, criterion=d.criterion)
+                  draws=U, criterion=d.criterion, criterion_kind=criterion,
+                  separation=[dict(effect=e, rival=r or "(none)", designed=t) for (e, r), t in d.separation.items()])
     if compare:  # the paper's random masks, same count, same draws and prior
         paper = M.trial_masks(count, seed=seed, size=size)
         Fp = information(paper, params, U, device=device)
@@ -423,7 +654,15 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
         if start is not None:
             A = A + start
         sdp = posterior_sd(A)
-        result["criterion_paper"] = float(criterion(A, focus, focus_weight))
+        result["criterion_paper"] = float(criterion_d(A, focus, focus_weight))
+        if rivals is not None and rivals.effects:
+            Gp = discrimination_gram(paper, params, U, rivals, seed, device=device).sum(axis=1)
+            if G_start is not None:
+                Gp = Gp + G_start
+            result["criterion_paper"] += float(discrimination(Gp, rivals))
+            Tp = separation(Gp, rivals)
+            for row in result["separation"]:
+                row["paper"] = float(Tp[(row["effect"], None if row["rival"] == "(none)" else row["rival"])].mean())
         for j, row in enumerate(sd_rows):
             row["paper_sd"] = float(sdp[j] * _unit(params, names)[1][j])
     result["seconds"] = time.perf_counter() - t0
@@ -460,8 +699,14 @@ def write_design(out_dir, result: dict, inputs=()) -> list[Path]:
         info.mkdir()
         write_tsv(info / "design.tsv", result["table"])
         write_tsv(info / "parameters.tsv", result["sd"])
+        if result.get("separation"):
+            write_tsv(info / "separation.tsv", result["separation"])
+        kind = result.get("criterion_kind", "d")
         write_yaml(info / "design.yaml", dict(
-            criterion="pseudo-Bayesian D-optimality on the print's sensitivity to the parameters (unscatter.design)",
+            criterion="pseudo-Bayesian D-optimality on the print's sensitivity to the parameters (unscatter.design)"
+                      + ("; plus telling the library's effects apart (linearised T-optimality, separation.tsv)"
+                         if kind == "discrimination" else ""),
+            noise=NOISE,
             model=result["model"], draws=int(len(result["draws"])), focus_effects=list(result["focus"]),
             criterion_designed=float(result["criterion"]), criterion_paper=result.get("criterion_paper"),
             seconds=float(result["seconds"])))

@@ -12,6 +12,7 @@ rule trial_masks:
         kind=config["trial_masks"]["kind"],
         pool=config["trial_masks"]["pool"],
         draws=config["trial_masks"]["draws"],
+        criterion=config["trial_masks"]["criterion"],
         fiducials=config["trial_masks"]["fiducials"],
         code=code_version("masks", "io", *(["design", "model"] if config["trial_masks"]["kind"] == "designed" else [])),
     threads: 2
@@ -38,6 +39,7 @@ rule next_trial_masks:
         size=config["trial_masks"]["size"],
         pool=config["trial_masks"]["pool"],
         draws=config["trial_masks"]["draws"],
+        criterion=config["trial_masks"]["criterion"],
         fiducials=config["trial_masks"]["fiducials"],
         code=code_version("design", "masks", "model", "io"),
     threads: 2

@@ -10,7 +10,7 @@ def main(snakemake):
     p = snakemake.params
     prints = list(snakemake.input.prints)
     r = design_masks(p.n, model=snakemake.input.model, prints=prints, pool=p.pool, draws=p.draws, seed=p.seed,
-                     size=p.size, fiducials=p.fiducials, progress=False)
+                     size=p.size, fiducials=p.fiducials, criterion=p.criterion, progress=False)
     write_design(snakemake.output[0], r, inputs=[snakemake.input.model, *prints])
     log.info("designed %d masks for the next batch (focus: %s; criterion %.1f, random paper masks %.1f) in %.0f s -> %s",
              p.n, ", ".join(r["focus"]) or "none", r["criterion"], r["criterion_paper"], r["seconds"], snakemake.output[0])

@@ -12,7 +12,7 @@ def main(snakemake):
         from unscatter.design import design_masks, write_design
 
         r = design_masks(p.n, pool=p.pool, draws=p.draws, seed=p.seed, size=p.size, fiducials=p.fiducials,
-                         progress=False)
+                         criterion=p.criterion, progress=False)
         write_design(out_dir, r)
         log.info("designed %d trial masks from %d candidates (criterion %.1f; random paper masks %.1f) in %.0f s -> %s",
                  p.n, p.pool, r["criterion"], r["criterion_paper"], r["seconds"], out_dir)
