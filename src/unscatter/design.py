@@ -724,8 +724,9 @@ def _figure(path: Path, result: dict) -> None:
     n = len(ms)
     cols = min(8, n)
     rows = -(-n // cols)
-    fig = plt.figure(figsize=(2 * cols, 2 * rows + 3.2))
-    gs = fig.add_gridspec(rows + 1, cols, height_ratios=[1] * rows + [1.6])
+    sep = result.get("separation") or []
+    fig = plt.figure(figsize=(2 * cols, 2 * rows + 3.2 + (3.2 if sep else 0)))
+    gs = fig.add_gridspec(rows + 1 + bool(sep), cols, height_ratios=[1] * rows + [1.6] + ([1.6] if sep else []))
     for i, (mid, m) in enumerate(ms):
         ax = fig.add_subplot(gs[i // cols, i % cols])
         ax.imshow(m, cmap="gray", vmin=0, vmax=255)
@@ -742,6 +743,16 @@ def _figure(path: Path, result: dict) -> None:
     ax.set_yscale("log")
     ax.set_ylabel("predicted sd / prior sd")
     ax.legend(fontsize=7)
+    if sep:  # how far each effect stands out from each rival (separation.tsv)
+        ax = fig.add_subplot(gs[rows + 1, :])
+        x = np.arange(len(sep))
+        ax.bar(x - 0.2, [r["designed"] for r in sep], 0.4, label="designed")
+        if "paper" in sep[0]:
+            ax.bar(x + 0.2, [r["paper"] for r in sep], 0.4, label="paper (random)")
+        ax.set_xticks(x, [f"{r['effect']} vs {r['rival']}" for r in sep], rotation=75, fontsize=6)
+        ax.set_yscale("log")
+        ax.set_ylabel("lack of fit T (noise variances)")
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
