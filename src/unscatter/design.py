@@ -337,8 +337,8 @@ def _steps(U: np.ndarray) -> np.ndarray:
 def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: int = 8, device=None,
                 progress=None) -> np.ndarray:
     """(S, B, K, K) Fisher information of each mask's print about the free parameters
-    (bound units) at each of the S draws ``U``: F = J^T J / (PIXEL_VARIANCE *
-    CORRELATION_PX^2) over the print's pixels (see the module doc).
+    (bound units) at each of the S draws ``U``: F = sum over the print's pixels of w J J^T,
+    w the pixel's weight under the noise model (``pixel_weights``; see the module doc).
 
     J by forward differences (backward at an upper bound): all K + 1 parameter sets of
     all draws in one batched evaluation per block of masks (``_print_sets``)."""
@@ -440,7 +440,7 @@ def rivals_of(params: Params, sd: np.ndarray) -> Rivals:
 def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray, rivals: Rivals, seed: int = 0,
                         chunk: int = 8, device=None, progress=None) -> np.ndarray:
     """(S, B, Q, Q) Gram matrix of each mask's print columns at each of the S draws (in
-    the information's units: / (PIXEL_VARIANCE * CORRELATION_PX^2)): the derivatives with
+    the information's units: weighted by ``pixel_weights``): the derivatives with
     respect to the K free parameters at the draw's null point (``U`` with the candidate
     effects neutral), then each candidate effect's print change at a size drawn from
     ``EFFECT_SIZES``. Q = K + candidate effects. Sums over masks: a design's Gram is the
