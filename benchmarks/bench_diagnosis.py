@@ -302,6 +302,15 @@ def verdict(effect: str, named: list, unexplained: bool) -> str:
     return "wrong" if named else "missed"
 
 
+def _designed_tag(args) -> str:
+    """The output folder's suffix for the trial masks: '' (paper), '_designed', plus the
+    design's criterion and noise model where they are not the defaults."""
+    if args.trial != "designed":
+        return ""
+    return ("_designed" + (f"_{args.criterion}" if args.criterion != "d" else "")
+            + (f"_{args.noise}noise" if args.noise else ""))
+
+
 def random_labs(args) -> None:
     from unscatter import metrics
     from unscatter.lab import Printer, load_config
@@ -314,7 +323,7 @@ def random_labs(args) -> None:
     held = args.heldout
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
     root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
-                                                          f"{'_designed' if args.trial == 'designed' else ''}{args.tag}")
+                                                          f"{_designed_tag(args)}{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")

@@ -198,3 +198,31 @@ def test_discrimination_design_separates_effects_better_than_random_paper_masks(
     rows = r["separation"]
     assert len(rows) == 25 and all(row["designed"] >= 0 and row["paper"] >= 0 for row in rows)
     assert np.mean([np.log1p(row["designed"]) for row in rows]) > np.mean([np.log1p(row["paper"]) for row in rows])
+
+
+def test_separation_counts_the_rivals_prior_precision():
+    """One rival column c and an effect d = c: the penalised fit leaves d'd lam / (c'c + lam)."""
+    rv = D.Rivals(names=["p0"], effects=["a"], own={"a": []}, base=[0], prior_precision=np.array([2.0]))
+    G = np.array([[[4.0, 4.0], [4.0, 4.0]]])  # c'c = c'd = d'd = 4
+    assert D.separation(G, rv)[("a", None)][0] == pytest.approx(4.0 * 2.0 / (4.0 + 2.0))
+
+
+def test_discrimination_grams_parameter_block_is_the_information_with_the_effects_neutral(params):
+    U, sd = D.design_prior(params, 1, seed=3)
+    rv = D.rivals_of(params, sd)
+    masks = D.candidate_pool(3, seed=4, size=SIZE)
+    G = D.discrimination_gram(masks, params, U, rv, seed=5)
+    K = len(params.free)
+    assert G.shape == (1, 3, K + len(rv.effects), K + len(rv.effects))
+    lo, rng_ = D._unit(params, params.free)
+    U0 = U.copy()
+    for e in rv.effects:
+        for j in rv.own[e]:
+            U0[:, j] = (params.values[params.free[j]] - lo[j]) / rng_[j]
+    F0 = D.information(masks, params, U0)
+    # equal up to float32 rounding (the effects' sizes widen the FFT padding)
+    assert np.allclose(G[:, :, :K, :K], F0, rtol=1e-3, atol=1e-5 * np.abs(F0).max())
+    F = D.information(masks, params, U)  # at the draw, effects present: not the null point
+    assert not np.allclose(G[:, :, :K, :K], F, rtol=1e-3, atol=1e-5 * np.abs(F).max())
+    eff = np.diagonal(G[0], axis1=-2, axis2=-1)[:, K:]  # each effect's squared print change
+    assert np.all(eff > 0) and np.allclose(G, np.swapaxes(G, -1, -2))

@@ -118,8 +118,10 @@ def masks_trial(out_dir, count, seed, size):
 @option(S.TRIAL_MASKS, "criterion")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def masks_design(out_dir, count, model, prints, pool, draws, seed, size, fiducials, criterion, progress):
-    """Trial masks designed to teach the printer model the most (D-optimal; masks, design.tsv,
-    parameters.tsv with the predicted parameter spread against random paper masks, design.png)."""
+    """Trial masks designed to teach the printer model the most (D-optimal, or --criterion
+    discrimination to also tell the library's effects apart; masks, design.tsv, parameters.tsv
+    with the predicted parameter spread against random paper masks, separation.tsv with
+    discrimination, design.png)."""
     _passive_threads()
     from .design import design_masks, write_design
 

@@ -353,7 +353,7 @@ def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: 
             sets.append(_values_at(params, names, U[s] + steps[s, j] * (np.arange(K) == j)))
     out = np.zeros((S, B, K, K))
     for b0, s, p, f in _print_sets(arr, params, sets, K + 1, chunk, device, progress):
-        J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype)[:, None, None, None]).flatten(2)  # (K, b, n)
+        J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]).flatten(2)  # (K, b, n)
         F = _gram(J, pixel_weights(p[0], f)) * f ** 2
         out[s, b0:b0 + F.shape[0]] = F.cpu().numpy()
     return out
@@ -470,7 +470,7 @@ def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray,
             sets.append(v)
     out = np.zeros((S, B, K + E, K + E))
     for b0, s, p, f in _print_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
-        J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype)[:, None, None, None]
+        J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]
         C = torch.cat([J, p[K + 1:] - p[:1]]).flatten(2)  # (Q, b, n)
         G = _gram(C, pixel_weights(p[0], f)) * f ** 2
         out[s, b0:b0 + G.shape[0]] = G.cpu().numpy()
@@ -639,7 +639,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
         data = load_prints(prints)
         start = information(data.masks, params, U, device=device).sum(axis=1)
     rivals = G = G_start = None
-    if criterion == "discrimination":
+    if criterion == "discrimination" and rivals_of(params, sd0).effects:  # none left: D-optimality alone
         rivals = rivals_of(params, sd0)
         G = discrimination_gram(cands, params, U, rivals, seed, device=device)
         if prints:
@@ -696,8 +696,10 @@ def _bar(progress: bool, total: int, desc: str):
 def write_design(out_dir, result: dict, inputs=()) -> list[Path]:
     """OUT/<id>.png, the masks (a mask folder as ``masks trial`` writes, ready to print), and
     OUT/design/: design.tsv (the chosen candidates and their gains), parameters.tsv
-    (predicted parameter sd: prior, designed, random paper masks), design.yaml (criterion,
-    model, focus) and design.png (the masks and the sd bars)."""
+    (predicted parameter sd: prior, designed, random paper masks), separation.tsv (with
+    the discrimination criterion: every effect's lack of fit under every rival),
+    design.yaml (criterion, its kind, noise model, model, focus) and design.png (the
+    masks, the sd bars and the separations)."""
     from .io import output_dir, write_png, write_tsv, write_yaml
 
     with output_dir(out_dir, command="masks design", inputs=list(inputs)) as tmp:
@@ -709,12 +711,12 @@ def write_design(out_dir, result: dict, inputs=()) -> list[Path]:
         write_tsv(info / "parameters.tsv", result["sd"])
         if result.get("separation"):
             write_tsv(info / "separation.tsv", result["separation"])
-        kind = result.get("criterion_kind", "d")
+        sep = bool(result.get("separation"))
         write_yaml(info / "design.yaml", dict(
             criterion="pseudo-Bayesian D-optimality on the print's sensitivity to the parameters (unscatter.design)"
                       + ("; plus telling the library's effects apart (linearised T-optimality, separation.tsv)"
-                         if kind == "discrimination" else ""),
-            noise=NOISE,
+                         if sep else ""),
+            criterion_kind=result.get("criterion_kind", "d"), noise=NOISE,
             model=result["model"], draws=int(len(result["draws"])), focus_effects=list(result["focus"]),
             criterion_designed=float(result["criterion"]), criterion_paper=result.get("criterion_paper"),
             seconds=float(result["seconds"])))
