@@ -624,9 +624,10 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
     prior_precision = np.diag(1.0 / sd0 ** 2)
     focus = None
     if focus_effects:
-        from .model import EFFECTS
+        from .model import EFFECTS, split_model_name
 
-        fp = {p.name for e in focus_effects for p in EFFECTS[e].params}
+        base_names = set(get_model(split_model_name(params.model)[0]).specs)  # anisotropy's kernel has sigma_px
+        fp = {p.name for e in focus_effects for p in EFFECTS[e].params if p.name not in base_names}
         focus = [j for j, k in enumerate(names) if k in fp] or None
 
     cands = candidate_pool(pool, seed, size, fiducials=fiducials)
