@@ -214,11 +214,11 @@ def test_discrimination_grams_parameter_block_is_the_information_with_the_effect
     G = D.discrimination_gram(masks, params, U, rv, seed=5)
     K = len(params.free)
     assert G.shape == (1, 3, K + len(rv.effects), K + len(rv.effects))
-    lo, rng_ = D._unit(params, params.free)
-    U0 = U.copy()
-    for e in rv.effects:
-        for j in rv.own[e]:
-            U0[:, j] = (params.values[params.free[j]] - lo[j]) / rng_[j]
+    U0 = D.null_point(params, U, rv)
+    assert np.array_equal(U0[:, rv.base], U[:, rv.base])
+    assert all(U0[0, j] == pytest.approx((params.values[params.free[j]] - params.bounds[params.free[j]][0])
+                                         / np.subtract(*params.bounds[params.free[j]][::-1]))
+               for e in rv.effects for j in rv.own[e])
     F0 = D.information(masks, params, U0)
     # equal up to float32 rounding (the effects' sizes widen the FFT padding)
     assert np.allclose(G[:, :, :K, :K], F0, rtol=1e-3, atol=1e-5 * np.abs(F0).max())

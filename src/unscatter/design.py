@@ -322,16 +322,27 @@ def _gram(J: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     return Jw @ Jw.transpose(1, 2)
 
 
-def _values_at(params: Params, names, u) -> dict:
+def _jacobian_sets(params: Params, U: np.ndarray, extra=None) -> tuple[list, np.ndarray]:
+    """Per draw u of ``U`` (bound units of ``params.free``): the values at u, then at u
+    moved by a forward-difference step in each parameter (backward at an upper bound),
+    then ``extra(u_values)``'s sets. Returns the sets and the (S, K) steps."""
+    names = params.free
     lo, rng_ = _unit(params, names)
-    out = dict(params.values)
-    out.update({k: float(lo[j] + u[j] * rng_[j]) for j, k in enumerate(names)})
-    return out
+    steps = np.where(U + STEP <= 1.0, STEP, -STEP)
 
+    def at(u):
+        out = dict(params.values)
+        out.update({k: float(lo[j] + u[j] * rng_[j]) for j, k in enumerate(names)})
+        return out
 
-def _steps(U: np.ndarray) -> np.ndarray:
-    """Forward-difference steps in bound units (backward at an upper bound)."""
-    return np.where(U + STEP <= 1.0, STEP, -STEP)
+    sets = []
+    for u, st in zip(U, steps):
+        base = at(u)
+        sets.append(base)
+        sets += [at(u + st[j] * (np.arange(len(names)) == j)) for j in range(len(names))]
+        if extra is not None:
+            sets += extra(base)
+    return sets, steps
 
 
 def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: int = 8, device=None,
@@ -345,12 +356,7 @@ def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: 
     arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
     names = params.free
     K, S, B = len(names), len(U), len(arr)
-    steps = _steps(U)
-    sets = []
-    for s in range(S):
-        sets.append(_values_at(params, names, U[s]))
-        for j in range(K):
-            sets.append(_values_at(params, names, U[s] + steps[s, j] * (np.arange(K) == j)))
+    sets, steps = _jacobian_sets(params, U)
     out = np.zeros((S, B, K, K))
     for b0, s, p, f in _print_sets(arr, params, sets, K + 1, chunk, device, progress):
         J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]).flatten(2)  # (K, b, n)
@@ -419,22 +425,40 @@ class Rivals:
         return out
 
 
+def added_params(params: Params, effect: str) -> list:
+    """The parameter specs that ``effect`` adds to ``params``' base model (an effect may
+    replace a base term and carry its parameters: anisotropy's kernel has sigma_px)."""
+    from .model import EFFECTS, split_model_name
+
+    base_names = set(get_model(split_model_name(params.model)[0]).specs)
+    return [p for p in EFFECTS[effect].params if p.name not in base_names]
+
+
 def rivals_of(params: Params, sd: np.ndarray) -> Rivals:
     """The candidate effects of a design for ``params``: the library's effects whose
     parameters are all at their neutral values (those a diagnosis of it may still add)."""
-    from .model import EFFECTS, split_model_name
+    from .model import EFFECTS
 
     names = params.free
-    base_names = set(get_model(split_model_name(params.model)[0]).specs)  # an effect may replace a base term (sigma_px)
     effects, own = [], {}
-    for e, spec in EFFECTS.items():
-        added = [p for p in spec.params if p.name in names and p.name not in base_names]
+    for e in EFFECTS:
+        added = [p for p in added_params(params, e) if p.name in names]
         idx = [names.index(p.name) for p in added]
         if idx and all(abs(float(params.values[p.name]) - float(p.default)) < 1e-12 for p in added):
             effects.append(e)
             own[e] = idx
     used = {j for idx in own.values() for j in idx}
     return Rivals(list(names), effects, own, [j for j in range(len(names)) if j not in used], 1.0 / np.asarray(sd) ** 2)
+
+
+def null_point(params: Params, U: np.ndarray, rivals: Rivals) -> np.ndarray:
+    """``U`` (bound units) with the candidate effects' parameters at their neutral values."""
+    lo, rng_ = _unit(params, rivals.names)
+    U0 = U.copy()
+    for e in rivals.effects:
+        for j in rivals.own[e]:
+            U0[:, j] = (float(params.values[rivals.names[j]]) - lo[j]) / rng_[j]
+    return U0
 
 
 def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray, rivals: Rivals, seed: int = 0,
@@ -448,26 +472,20 @@ def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray,
     arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
     names = rivals.names
     K, S, B, E = len(names), len(U), len(arr), len(rivals.effects)
-    lo, rng_ = _unit(params, names)
-    U0 = U.copy()
-    for e in rivals.effects:
-        for j in rivals.own[e]:
-            U0[:, j] = (float(params.values[names[j]]) - lo[j]) / rng_[j]
     g = np.random.default_rng([seed, 78])
-    steps = _steps(U0)
-    sets = []
-    for s in range(S):
-        null = _values_at(params, names, U0[s])
-        sets.append(null)
-        for j in range(K):
-            sets.append(_values_at(params, names, U0[s] + steps[s, j] * (np.arange(K) == j)))
+
+    def sized(null: dict) -> list:  # each candidate effect at a drawn size
+        out = []
         for e in rivals.effects:
             v = dict(null)
             for j in rivals.own[e]:
                 k = names[j]
                 kind, a, b = EFFECT_SIZES.get(k, PRIOR.get(k, ("uniform",) + tuple(params.bounds[k])))
                 v[k] = float(np.clip(_draw(kind, a, b, g, 1)[0], *params.bounds[k]))
-            sets.append(v)
+            out.append(v)
+        return out
+
+    sets, steps = _jacobian_sets(params, null_point(params, U, rivals), sized)
     out = np.zeros((S, B, K + E, K + E))
     for b0, s, p, f in _print_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
         J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]
@@ -624,10 +642,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
     prior_precision = np.diag(1.0 / sd0 ** 2)
     focus = None
     if focus_effects:
-        from .model import EFFECTS, split_model_name
-
-        base_names = set(get_model(split_model_name(params.model)[0]).specs)  # anisotropy's kernel has sigma_px
-        fp = {p.name for e in focus_effects for p in EFFECTS[e].params if p.name not in base_names}
+        fp = {p.name for e in focus_effects for p in added_params(params, e)}
         focus = [j for j, k in enumerate(names) if k in fp] or None
 
     cands = candidate_pool(pool, seed, size, fiducials=fiducials)
@@ -639,9 +654,9 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
 
         data = load_prints(prints)
         start = information(data.masks, params, U, device=device).sum(axis=1)
-    rivals = G = G_start = None
-    if criterion == "discrimination" and rivals_of(params, sd0).effects:  # none left: D-optimality alone
-        rivals = rivals_of(params, sd0)
+    rivals = rivals_of(params, sd0) if criterion == "discrimination" else None
+    G = G_start = None
+    if rivals is not None and rivals.effects:  # none left: D-optimality alone
         G = discrimination_gram(cands, params, U, rivals, seed, device=device)
         if prints:
             G_start = discrimination_gram(data.masks, params, U, rivals, seed, device=device).sum(axis=1)
