@@ -12,19 +12,21 @@ of the simulated print to the parameters.
   so the design also teaches the effects the diagnosis may have to name. Parameters are
   scaled to their bounds (u = (theta - lower) / (upper - lower)), so no unit dominates.
 - The information of one print at parameters u is F = sum over pixels of w J J^T, with J
-  the derivative of the print (smooth threshold, ``TEMPERATURE``) with respect to u and
-  w the pixel's weight under a model of the print's noise (``NOISE``, ``pixel_weights``).
-  Only pixels near an edge that moves with a parameter contribute; solid interiors none.
-  The default noise model is the edge's: cells scatter the dose (``DOSE_NOISE``) over
-  patches of a cell's size (``CORRELATION_PX``), which moves an edge by the dose noise
-  over the dose's gradient, on top of a floor of ``EDGE_SD_PX``. A shallow edge (a grey
+  the derivative with respect to u of the cure margin (D - T) / T and w the pixel's
+  weight under a model of the print's noise (``NOISE``, ``pixel_weights``): the margin's
+  change at an edge over its gradient is how far the edge moves. Only pixels near an edge
+  contribute; solid interiors none. The default noise model is the edge's: cells
+  scatter the dose (``DOSE_NOISE``) over patches of a cell's size (``CORRELATION_PX``),
+  which moves an edge by the dose noise over the dose's gradient, on top of a floor of
+  ``EDGE_SD_PX``; each print's overall dose varies too (``PRINT_DOSE_SD``), and what a
+  dose change mimics is profiled out of each print's information. A shallow edge (a grey
   level near the threshold, a grating whose lines merge in the dose) moves further with
   a parameter and as much further with the noise: it prints as patches where the cells
   push the dose across the threshold, and teaches no more per length of edge than a
   steep one. The older model (``NOISE = "pixel"``: every uncertain pixel an independent
-  binary pixel) counted such a band's width of uncertain pixels as that many
-  measurements, and filled the designs with near-threshold areas whose patchy prints
-  carried much of the diagnosis's held-out error.
+  binary pixel of the smooth print, ``TEMPERATURE``) counted such a band's width of
+  uncertain pixels as that many measurements, and filled the designs with near-threshold
+  areas whose patchy prints carried much of the diagnosis's held-out error.
 - The parameters are unknown before the prints, so the criterion is the mean of
   log det(prior precision + sum of F) over draws from a prior (``design_prior``): a
   design good for one printer only is not chosen. With a calibration (``--model``) the
@@ -69,8 +71,8 @@ from .model import FixedMasks, Params, default_params, effect_names, extend_para
 
 log = logging.getLogger(__name__)
 
-TEMPERATURE = 0.1  # smooth threshold width as a fraction of T (the calibration's coarse temperature)
-PIXEL_VARIANCE = 0.25  # variance of a binary print pixel at an uncertain edge (its largest)
+TEMPERATURE = 0.1  # pixel model: smooth threshold width as a fraction of T (the calibration's coarse temperature)
+PIXEL_VARIANCE = 0.25  # pixel model: variance of a binary print pixel at an uncertain edge (its largest)
 # Print errors are not independent from pixel to pixel: cells (10 to 15 um, 3 to 5 DMD
 # pixels) move an edge over a stretch. One independent error per CORRELATION_PX^2 pixels.
 CORRELATION_PX = 4
@@ -80,12 +82,16 @@ CORRELATION_PX = 4
 # of EDGE_SD_PX (registration, the camera's pixels). One independent measurement of the
 # edge's place per CORRELATION_PX of edge: a shallow edge (near-threshold grey, a thin
 # line's faint sides) moves further with a parameter, and as much further with the
-# noise, so it teaches no more than a steep one. ``NOISE = "pixel"``: every pixel near an
-# edge an independent binary pixel of PIXEL_VARIANCE per CORRELATION_PX^2, which counts a
-# shallow edge's wide band of uncertain pixels as that many measurements.
+# noise, so it teaches no more than a steep one. The edges are found from the cure
+# margin (D - T) / T, smooth at every kernel width (``pixel_weights``), and each print's
+# overall dose is a nuisance of PRINT_DOSE_SD (``print_gram``). ``NOISE = "pixel"``:
+# every pixel near an edge of the smooth print (``TEMPERATURE``) an independent binary
+# pixel of PIXEL_VARIANCE per CORRELATION_PX^2, which counts a shallow edge's wide band of
+# uncertain pixels as that many measurements.
 NOISE = "edge"
-DOSE_NOISE = 0.03
+DOSE_NOISE = 0.03  # the cells' dose noise, a share of T (the virtual lab's 3 %; random labs 1 to 6 %)
 EDGE_SD_PX = 0.5
+PRINT_DOSE_SD = 0.02  # print-to-print dose, relative (the virtual lab's 1.5 %; random labs 0 to 4 %)
 STEP = 0.01  # finite-difference step, as a share of each parameter's bound range
 DECIMATION = 2  # Jacobians on every 2nd pixel
 
@@ -269,13 +275,18 @@ def design_prior(params: Params, draws: int, seed: int = 0, fitted: Params | Non
 
 
 # ---------------------------------------------------------------------- information
-def _print_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chunk: int, device, progress):
-    """Simulated prints (smooth threshold) of every mask in ``arr`` under every parameter
-    set of ``sets`` (dicts of every model value; ``per_draw`` consecutive sets belong to
-    one draw): yields (first mask, draw, prints (per_draw, b, h, w) float64, the grid's
-    step f in design pixels: each sample stands for f^2 pixels). One batched evaluation
-    per block of masks, whose spectra are computed once (``FixedMasks``); on every
-    ``DECIMATION``-th pixel where the size allows."""
+def _margin_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chunk: int, device, progress):
+    """Cure margins of every mask in ``arr`` under every parameter set of ``sets`` (dicts
+    of every model value; ``per_draw`` consecutive sets belong to one draw): yields (first
+    mask, draw, margins (per_draw, b, h, w) float64, the first set's |grad margin| (b, h,
+    w) per design pixel, the grid's step f in design pixels: each sample stands for f^2
+    pixels). The margin is the absorbed dose's relative excess over the threshold,
+    (D - T) / T: smooth at every kernel width, where the print jumps from 0 to 1 within a
+    pixel. Its gradient comes from the dose's spectrum (exact where the grid resolves the
+    dose; finite differences over two samples were 23 % low at an edge of sigma 1.5 px on
+    the 2-px grid). One batched evaluation per block of masks, whose spectra
+    are computed once (``FixedMasks``); on every ``DECIMATION``-th pixel where the size
+    allows."""
     model = get_model(params.model)
     device = torch.device(device or "cpu")
     theta = model.theta({k: [d[k] for d in sets] for k in model.names}, device)
@@ -288,31 +299,48 @@ def _print_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chun
         for s in range(S):  # one draw at a time keeps the temporaries small
             sub = {k: v[s * per_draw:(s + 1) * per_draw] for k, v in theta.items()}
             with torch.no_grad():
-                yield b0, s, sim.prints(sub, TEMPERATURE).double(), sim.f
+                T = sub["T"].double().reshape(-1, 1, 1, 1)
+                D, gy, gx = sim.dose(sub, gradient=True)
+                g = torch.sqrt(gx[0].double() ** 2 + gy[0].double() ** 2) / T[0]
+                yield b0, s, D.double() / T - 1.0, g, sim.f
         if progress:
             progress(min(b0 + chunk, B), B)
 
 
-def pixel_weights(p: torch.Tensor, f: int, noise: str | None = None) -> torch.Tensor:
-    """(b, n) weight of each pixel's squared print derivative in the information, for the
-    smooth prints ``p`` (b, h, w) at every ``f``-th design pixel (see ``NOISE``).
-
-    Edge model: with g = |grad p| / (p (1 - p)) = |grad D| / (TEMPERATURE T) per design
-    pixel, the weight 6 g / (CORRELATION_PX (r^2 + EDGE_SD_PX^2 g^2)), r = DOSE_NOISE /
-    TEMPERATURE, sums (across an edge, where the integral of the logistic's squared slope
-    is 1/6) to (edge shift)^2 / (edge sd^2 CORRELATION_PX) per unit length of edge, the
-    edge sd being sqrt((DOSE_NOISE T / |grad D|)^2 + EDGE_SD_PX^2)."""
+def _noise(noise: str | None) -> str:
     noise = noise or NOISE
-    b = p.shape[0]
-    if noise == "pixel":
-        return torch.full((b, p[0].numel()), 1.0 / (PIXEL_VARIANCE * CORRELATION_PX ** 2), dtype=p.dtype, device=p.device)
-    if noise != "edge":
+    if noise not in ("edge", "pixel"):
         raise ValueError(f"unknown noise model {noise!r}: edge or pixel")
-    gy, gx = torch.gradient(p, dim=(-2, -1))
-    s = (p * (1 - p)).clamp_min(1e-9)
-    g = torch.sqrt(gx ** 2 + gy ** 2) / (s * f)
-    r = DOSE_NOISE / TEMPERATURE
-    return (6.0 * g / (CORRELATION_PX * (r ** 2 + EDGE_SD_PX ** 2 * g ** 2))).reshape(b, -1)
+    return noise
+
+
+def response(m: torch.Tensor, noise: str | None = None) -> torch.Tensor:
+    """What the information differentiates, from margins ``m``: the margin itself (edge
+    model) or the smooth print sigmoid(m / TEMPERATURE) (pixel model)."""
+    return m if _noise(noise) == "edge" else torch.sigmoid(m / TEMPERATURE)
+
+
+def pixel_weights(m: torch.Tensor, g: torch.Tensor, f: int, noise: str | None = None) -> torch.Tensor:
+    """(b, n) weight of each sample's squared derivative of ``response`` in the
+    information, for the margins ``m`` (b, h, w) and their gradients' size ``g`` (b, h,
+    w; per design pixel) at every ``f``-th design pixel (see ``NOISE``).
+
+    Edge model: with g = |grad m| per design pixel, a change dm of the margin moves the
+    edge by dm / g, and the edge's place has the spread sigma_m / g with sigma_m^2 =
+    DOSE_NOISE^2 + EDGE_SD_PX^2 g^2. Per unit length of edge and one measurement per
+    CORRELATION_PX of it, that is dm^2 / (sigma_m^2 CORRELATION_PX). The length comes from
+    the co-area formula (the edge's length element is phi(m) |grad m| dA for phi of unit
+    integral in m): the weight is phi(m) g / (CORRELATION_PX sigma_m^2). phi is a Gaussian
+    of m as wide as the edge's own spread (the information is where the edge may fall),
+    widened by half a sample's span of m, so that the grid resolves it: the sum over the
+    samples is the integral within 0.5 % wherever the edge falls between them."""
+    b = m.shape[0]
+    if _noise(noise) == "pixel":
+        return torch.full((b, m[0].numel()), 1.0 / (PIXEL_VARIANCE * CORRELATION_PX ** 2), dtype=m.dtype, device=m.device)
+    var_m = DOSE_NOISE ** 2 + (EDGE_SD_PX * g) ** 2
+    width = var_m + (0.5 * f * g) ** 2
+    phi = torch.exp(-0.5 * m ** 2 / width) / torch.sqrt(2 * math.pi * width)
+    return (phi * g / (CORRELATION_PX * var_m)).reshape(b, -1)
 
 
 def _gram(J: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -320,6 +348,25 @@ def _gram(J: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
     batched matrix product (a three-operand einsum took 8 times as long)."""
     Jw = (J * w.sqrt()[None]).transpose(0, 1)  # (b, K, n)
     return Jw @ Jw.transpose(1, 2)
+
+
+def print_gram(J: torch.Tensor, m0: torch.Tensor, g0: torch.Tensor, f: int, noise: str | None = None) -> torch.Tensor:
+    """(b, K, K) information of each print about the K columns J (K, b, n) (changes of
+    ``response`` on the print's samples), at the margins ``m0`` (b, h, w) whose gradients
+    have the size ``g0``, on the grid of every ``f``-th design pixel.
+
+    Edge model: each print's overall dose is a nuisance. It is off by PRINT_DOSE_SD from
+    print to print (lamp, ink batch), which moves all of that print's edges at once, so a
+    column that a dose change mimics teaches less: the dose column (dm / d log dose =
+    m + 1) is profiled out of the print's Gram under a prior of PRINT_DOSE_SD (a Schur
+    complement of one column)."""
+    w = pixel_weights(m0, g0, f, noise)
+    if _noise(noise) == "pixel":
+        return _gram(J, w) * f ** 2
+    A = _gram(torch.cat([J, (m0 + 1.0).flatten(1)[None]]), w) * f ** 2
+    c = A[:, :-1, -1]
+    d = A[:, -1, -1] + 1.0 / PRINT_DOSE_SD ** 2
+    return A[:, :-1, :-1] - c[:, :, None] * c[:, None, :] / d[:, None, None]
 
 
 def _jacobian_sets(params: Params, U: np.ndarray, extra=None) -> tuple[list, np.ndarray]:
@@ -352,15 +399,16 @@ def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: 
     w the pixel's weight under the noise model (``pixel_weights``; see the module doc).
 
     J by forward differences (backward at an upper bound): all K + 1 parameter sets of
-    all draws in one batched evaluation per block of masks (``_print_sets``)."""
+    all draws in one batched evaluation per block of masks (``_margin_sets``)."""
     arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
     names = params.free
     K, S, B = len(names), len(U), len(arr)
     sets, steps = _jacobian_sets(params, U)
     out = np.zeros((S, B, K, K))
-    for b0, s, p, f in _print_sets(arr, params, sets, K + 1, chunk, device, progress):
+    for b0, s, m, g, f in _margin_sets(arr, params, sets, K + 1, chunk, device, progress):
+        p = response(m)
         J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]).flatten(2)  # (K, b, n)
-        F = _gram(J, pixel_weights(p[0], f)) * f ** 2
+        F = print_gram(J, m[0], g, f)
         out[s, b0:b0 + F.shape[0]] = F.cpu().numpy()
     return out
 
@@ -401,7 +449,7 @@ def _draw(kind: str, a: float, b: float, g: np.random.Generator, n: int) -> np.n
 class Rivals:
     """The columns of a discrimination Gram matrix (``discrimination_gram``): the free
     parameters ``names`` (bound units, at the null point: the candidate effects neutral),
-    then one column per candidate effect (its print change at a drawn size)."""
+    then one column per candidate effect (its change at a drawn size)."""
 
     names: list
     effects: list  # the candidate effects, in column order after the parameters
@@ -463,12 +511,16 @@ def null_point(params: Params, U: np.ndarray, rivals: Rivals) -> np.ndarray:
 
 def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray, rivals: Rivals, seed: int = 0,
                         chunk: int = 8, device=None, progress=None) -> np.ndarray:
-    """(S, B, Q, Q) Gram matrix of each mask's print columns at each of the S draws (in
-    the information's units: weighted by ``pixel_weights``): the derivatives with
-    respect to the K free parameters at the draw's null point (``U`` with the candidate
-    effects neutral), then each candidate effect's print change at a size drawn from
-    ``EFFECT_SIZES``. Q = K + candidate effects. Sums over masks: a design's Gram is the
-    sum of its masks'."""
+    """(S, B, Q, Q) Gram matrix of each mask's columns at each of the S draws (in the
+    information's units: ``print_gram``, on the margin under the edge model): the
+    derivatives with respect to the K free parameters at the draw's null point (``U``
+    with the candidate effects neutral), then each candidate effect's change at a size
+    drawn from ``EFFECT_SIZES``. Q = K + candidate effects. Under the edge model an
+    effect's column is its change of the margin, near linear in its size (an edge offset
+    of e moves the margin by exactly e |grad m|), so a rival's derivatives can fit what
+    they can reproduce; a change of the thresholded print is not linear, and part of an
+    edge shift that a change of T reproduces was left as lack of fit. Sums over masks: a
+    design's Gram is the sum of its masks'."""
     arr = np.stack(list(masks.values())) if isinstance(masks, dict) else np.asarray(masks)
     names = rivals.names
     K, S, B, E = len(names), len(U), len(arr), len(rivals.effects)
@@ -487,18 +539,20 @@ def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray,
 
     sets, steps = _jacobian_sets(params, null_point(params, U, rivals), sized)
     out = np.zeros((S, B, K + E, K + E))
-    for b0, s, p, f in _print_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
+    for b0, s, m, g, f in _margin_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
+        p = response(m)
         J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]
         C = torch.cat([J, p[K + 1:] - p[:1]]).flatten(2)  # (Q, b, n)
-        G = _gram(C, pixel_weights(p[0], f)) * f ** 2
+        G = print_gram(C, m[0], g, f)
         out[s, b0:b0 + G.shape[0]] = G.cpu().numpy()
     return out
 
 
 def separation(G: np.ndarray, rivals: Rivals) -> dict:
-    """{(effect, rival): (..., S) lack of fit}: what remains of the effect's print change
-    (at its drawn size) after the rival's best linear fit, in units of the print noise's
-    variance (a chi-square: near 1 or below, the rival absorbs the effect within the noise).
+    """{(effect, rival): (..., S) lack of fit}: what remains of the effect's change (at
+    its drawn size) after the rival's best linear fit, in units of the print noise's
+    variance: the non-centrality of a test of the rival against the effect (near 1 or
+    below, the rival absorbs the effect within the noise).
     T = d'd - b' (G_RR + P_R)^-1 b, with P_R the rival's prior precision (its parameters',
     ``RIVAL_PRECISION`` for the share of its own size): Atkinson & Fedorov's (1975)
     T-optimality criterion, linearised. ``G``: (..., S, Q, Q) from ``discrimination_gram``."""

@@ -573,17 +573,19 @@ class PrinterModel:
             den = den + w
         return num / den
 
-    def blur_spectrum(self, spectrum: torch.Tensor, theta: Theta, shape, out_hw, scale: float = 1.0) -> torch.Tensor:
+    def blur_spectrum(self, spectrum: torch.Tensor, theta: Theta, shape, out_hw, scale: float = 1.0,
+                      gradient: bool = False):
         """Kernel applied to (P, B, Nh, Nw//2+1) exposure spectra -> (P, B, H, W) dose.
 
         Dose terms (stage "dose", e.g. ``EdgeOffset``) then act on the blurred dose and
-        its gradient (per design pixel), both taken from the same spectrum."""
+        its gradient (per design pixel), both taken from the same spectrum. ``gradient``:
+        return (dose, gy, gx), the gradient the blurred dose's (before the dose terms)."""
         Ht = self.transfer(shape, theta, scale, spectrum.device)
         spec = spectrum * Ht[:, None]
         # irfft2 in two passes, dropping the padding rows in between (less work, same result)
         x = torch.fft.ifft(spec, dim=-2)[..., : out_hw[0], :]
         dose = torch.fft.irfft(x, n=shape[1], dim=-1)[..., : out_hw[1]]
-        if not self.dose_terms:
+        if not self.dose_terms and not gradient:
             return dose
         Nh, Nw = shape
         fy = torch.fft.fftfreq(Nh, device=spec.device, dtype=DTYPE) / scale
@@ -595,7 +597,7 @@ class PrinterModel:
         gy = torch.fft.irfft(xy, n=Nw, dim=-1)[..., : out_hw[1]]
         for t in self.dose_terms:
             dose = t.apply(dose, gy, gx, theta)
-        return dose
+        return (dose, gy, gx) if gradient else dose
 
     def dose(self, masks: torch.Tensor, theta: Theta, scale: float = 1.0, shape=None) -> torch.Tensor:
         """(P, B, H, W) absorbed dose Gauss_sigma(ReLU(field) * M), zero padded (no wrap)."""
@@ -742,14 +744,20 @@ class FixedMasks:
             new.spectra = self.spectra[:, idx].contiguous()
         return new
 
-    def dose(self, theta: Theta, masks: slice | None = None) -> torch.Tensor:
+    def dose(self, theta: Theta, masks: slice | None = None, gradient: bool = False):
         """(P, B, h, w) absorbed dose for P parameter sets (at every f-th pixel); ``masks``
-        restricts it to a block of the masks (smaller temporaries)."""
+        restricts it to a block of the masks (smaller temporaries). ``gradient``: (dose,
+        gy, gx), the blurred dose's gradient per design pixel from the same spectrum
+        (``PrinterModel.blur_spectrum``)."""
         if self.support_px + 1e-6 < self.model.support_px({k: v.detach().cpu() for k, v in theta.items()}):
             raise ValueError("a kernel is wider than this evaluator's padding; build it with a larger support_px")
         sl = masks if masks is not None else slice(None)
         M = self.masks[sl]
         if not self.fast:
+            if gradient:
+                spec = torch.fft.rfft2(self.model.exposure(M, theta), s=self.full_shape)
+                out = self.model.blur_spectrum(spec, theta, self.full_shape, (self.H, self.W), gradient=True)
+                return tuple(t[..., :: self.f, :: self.f] for t in out)
             d = self.model.dose(M, theta, shape=self.full_shape)
             return d[..., :: self.f, :: self.f]
         K = self.spectra.shape[0]
@@ -770,7 +778,7 @@ class FixedMasks:
             sub = {k: v[neg] for k, v in theta.items()}
             direct = self._band(torch.fft.rfft2(self.model.exposure(M, sub), s=self.full_shape), self.f)
             spec = spec.index_put((neg,), direct)
-        return self.model.blur_spectrum(spec, theta, self.shape, self.out_hw, self.f)
+        return self.model.blur_spectrum(spec, theta, self.shape, self.out_hw, self.f, gradient=gradient)
 
     def prints(self, theta: Theta, temperature: float | None = None, masks: slice | None = None) -> torch.Tensor:
         return self.model.threshold.apply(self.dose(theta, masks), theta, temperature)
