@@ -302,6 +302,7 @@ def _margin_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chu
                 T = sub["T"].double().reshape(-1, 1, 1, 1)
                 D, gy, gx = sim.dose(sub, gradient=True)
                 g = torch.sqrt(gx[0].double() ** 2 + gy[0].double() ** 2) / T[0]
+                del gy, gx
                 yield b0, s, D.double() / T - 1.0, g, sim.f
         if progress:
             progress(min(b0 + chunk, B), B)

@@ -46,8 +46,9 @@ ranking's ``heldout_mismatch`` column holds that error.
 
 Outputs under ``out_dir``: ``model.yaml`` (the selected model's params, loadable by
 ``model.load_params``, plus ``effects`` and ``unexplained_residual``), ``ranking.tsv``,
-``heldout_errors.tsv`` (every print's held-out error under the base model, each round's
-control and each candidate: the numbers the acceptance test resamples), ``before_after.tsv``, ``diagnostics.tsv``, ``structure.tsv``, ``diagnostics.png``,
+``heldout_errors.tsv`` (every print's held-out error under the base model as
+``before_after.tsv`` scores it, each round's control and each candidate: the numbers
+the acceptance test resamples), ``before_after.tsv``, ``diagnostics.tsv``, ``structure.tsv``, ``diagnostics.png``,
 ``residual_maps.png``, ``report.md``.
 
 This module never imports the virtual lab: it sees only registered prints and a params
@@ -937,7 +938,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     del ctx
 
     ranking = []
-    per_print = [dict(round=0, candidate="(base)", **{lab: float(e) for lab, e in zip(data.labels, base_ho.error)})]
+    per_print = []
     accepted_effects: list[str] = []
     for rnd in range(1, int(s["max_rounds"]) + 1):
         remaining = [c for c in cands if c not in accepted_effects]
@@ -1008,6 +1009,9 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         accepted_effects.append(best)
         cur, cur_params = ho, p.with_values(**ho.values)
     bar.close()
+
+    # the base model's errors as before_after.tsv scores them (round 1's control where it refitted better)
+    per_print.insert(0, dict(round=0, candidate="(base)", **{lab: float(e) for lab, e in zip(data.labels, base_ho.error)}))
 
     # -- diagnostics before and after ----------------------------------------------------
     geo = geometry(data.masks, px, s)

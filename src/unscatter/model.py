@@ -252,6 +252,10 @@ class DoseTerm(Component):
     def apply(self, dose, gy, gx, theta: Theta) -> torch.Tensor:
         raise NotImplementedError
 
+    def gradient(self, dose, gy, gx, hyy, hxy, hxx, theta: Theta) -> tuple:
+        """(gy, gx) of ``apply``'s result, from the dose's gradient and Hessian."""
+        raise NotImplementedError
+
 
 # ---------------------------------------------------------------- effect components
 #
@@ -438,6 +442,13 @@ class EdgeOffset(DoseTerm):
         d = theta["edge_offset_px"].reshape(-1, *([1] * (dose.dim() - 1)))
         return dose + d * torch.sqrt(gx**2 + gy**2 + 1e-12)
 
+    def gradient(self, dose, gy, gx, hyy, hxy, hxx, theta):
+        # grad (D + d |grad D|) = grad D + d H grad D / |grad D|
+        d = theta["edge_offset_px"].reshape(-1, *([1] * (dose.dim() - 1)))
+        n = torch.sqrt(gx**2 + gy**2 + 1e-12)
+        ny, nx = gy / n, gx / n
+        return gy + d * (hyy * ny + hxy * nx), gx + d * (hxy * ny + hxx * nx)
+
 
 # ------------------------------------------------------------------------- geometry
 
@@ -579,7 +590,8 @@ class PrinterModel:
 
         Dose terms (stage "dose", e.g. ``EdgeOffset``) then act on the blurred dose and
         its gradient (per design pixel), both taken from the same spectrum. ``gradient``:
-        return (dose, gy, gx), the gradient the blurred dose's (before the dose terms)."""
+        return (dose, gy, gx), the gradient of the returned dose (the dose terms' by the
+        chain rule, from the blurred dose's Hessian, taken from the same spectrum)."""
         Ht = self.transfer(shape, theta, scale, spectrum.device)
         spec = spectrum * Ht[:, None]
         # irfft2 in two passes, dropping the padding rows in between (less work, same result)
@@ -595,6 +607,17 @@ class PrinterModel:
         gx = torch.fft.irfft(x * (2j * math.pi * fx), n=Nw, dim=-1)[..., : out_hw[1]]
         xy = torch.fft.ifft(spec * (2j * math.pi * fy)[:, None], dim=-2)[..., : out_hw[0], :]
         gy = torch.fft.irfft(xy, n=Nw, dim=-1)[..., : out_hw[1]]
+        if gradient and self.dose_terms:
+            wy, wx = (2j * math.pi * fy)[:, None], 2j * math.pi * fx
+            hxx = torch.fft.irfft(x * wx * wx, n=Nw, dim=-1)[..., : out_hw[1]]
+            hxy = torch.fft.irfft(xy * wx, n=Nw, dim=-1)[..., : out_hw[1]]
+            hyy = torch.fft.irfft(torch.fft.ifft(spec * wy * wy, dim=-2)[..., : out_hw[0], :], n=Nw, dim=-1)[..., : out_hw[1]]
+            if len(self.dose_terms) > 1:  # the chain rule below is for one term on the blurred dose
+                raise NotImplementedError("the gradient of more than one dose term")
+            out_g = self.dose_terms[0].gradient(dose, gy, gx, hyy, hxy, hxx, theta)
+            for t in self.dose_terms:
+                dose = t.apply(dose, gy, gx, theta)
+            return dose, out_g[0], out_g[1]
         for t in self.dose_terms:
             dose = t.apply(dose, gy, gx, theta)
         return (dose, gy, gx) if gradient else dose
