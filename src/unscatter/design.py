@@ -300,10 +300,9 @@ def _margin_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chu
             sub = {k: v[s * per_draw:(s + 1) * per_draw] for k, v in theta.items()}
             with torch.no_grad():
                 T = sub["T"].double().reshape(-1, 1, 1, 1)
-                D, gy, gx = sim.dose(sub, gradient=True)
+                _, gy, gx = sim.dose({k: v[:1] for k, v in sub.items()}, gradient=True)  # the first set's only
                 g = torch.sqrt(gx[0].double() ** 2 + gy[0].double() ** 2) / T[0]
-                del gy, gx
-                yield b0, s, D.double() / T - 1.0, g, sim.f
+                yield b0, s, sim.dose(sub).double() / T - 1.0, g, sim.f
         if progress:
             progress(min(b0 + chunk, B), B)
 
@@ -370,6 +369,13 @@ def print_gram(J: torch.Tensor, m0: torch.Tensor, g0: torch.Tensor, f: int, nois
     return A[:, :-1, :-1] - c[:, :, None] * c[:, None, :] / d[:, None, None]
 
 
+def _differences(p: torch.Tensor, steps: np.ndarray) -> torch.Tensor:
+    """(K, b, n) forward differences of ``p`` (K + 1 + ..., b, h, w: the values at a draw,
+    then at each of its K steps, ``_jacobian_sets``) over the (K,) ``steps``."""
+    K = len(steps)
+    return ((p[1:K + 1] - p[:1]) / torch.as_tensor(steps, dtype=p.dtype, device=p.device)[:, None, None, None]).flatten(2)
+
+
 def _jacobian_sets(params: Params, U: np.ndarray, extra=None) -> tuple[list, np.ndarray]:
     """Per draw u of ``U`` (bound units of ``params.free``): the values at u, then at u
     moved by a forward-difference step in each parameter (backward at an upper bound),
@@ -407,9 +413,7 @@ def information(masks: dict | np.ndarray, params: Params, U: np.ndarray, chunk: 
     sets, steps = _jacobian_sets(params, U)
     out = np.zeros((S, B, K, K))
     for b0, s, m, g, f in _margin_sets(arr, params, sets, K + 1, chunk, device, progress):
-        p = response(m)
-        J = ((p[1:] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]).flatten(2)  # (K, b, n)
-        F = print_gram(J, m[0], g, f)
+        F = print_gram(_differences(response(m), steps[s]), m[0], g, f)
         out[s, b0:b0 + F.shape[0]] = F.cpu().numpy()
     return out
 
@@ -542,8 +546,7 @@ def discrimination_gram(masks: dict | np.ndarray, params: Params, U: np.ndarray,
     out = np.zeros((S, B, K + E, K + E))
     for b0, s, m, g, f in _margin_sets(arr, params, sets, K + 1 + E, chunk, device, progress):
         p = response(m)
-        J = (p[1:K + 1] - p[:1]) / torch.as_tensor(steps[s], dtype=p.dtype, device=p.device)[:, None, None, None]
-        C = torch.cat([J, p[K + 1:] - p[:1]]).flatten(2)  # (Q, b, n)
+        C = torch.cat([_differences(p, steps[s]), (p[K + 1:] - p[:1]).flatten(2)])  # (Q, b, n)
         G = print_gram(C, m[0], g, f)
         out[s, b0:b0 + G.shape[0]] = G.cpu().numpy()
     return out

@@ -938,7 +938,11 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     del ctx
 
     ranking = []
-    per_print = []
+    per_print = []  # heldout_errors.tsv
+
+    def errors_row(rnd, candidate, error):
+        return dict(round=rnd, candidate=candidate, **{lab: float(e) for lab, e in zip(data.labels, error)})
+
     accepted_effects: list[str] = []
     for rnd in range(1, int(s["max_rounds"]) + 1):
         remaining = [c for c in cands if c not in accepted_effects]
@@ -959,6 +963,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                             current_mismatch=float(cur.error.mean()), improvement=0.0, relative_improvement=0.0, ci_lo=0.0,
                             ci_hi=0.0, p_value=1.0, heldout_iou=float(np.mean([metrics.iou(a, b) for a, b in zip(cur.sims, data.prints)])),
                             accepted=False, selected=False, seconds=round(ctl.seconds, 2), effect_params=""))
+        per_print.append(errors_row(rnd, "(control)", cur.error))
         results = {}
         for c in remaining:
             t0 = time.perf_counter()
@@ -973,9 +978,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
             ho = _heldout(ctx, starts, folds, s, set(cur_params.free), seed + 1000 * rnd, f"+{c}", bar)
             del ctx
             stats = paired_bootstrap(cur.error, ho.error, s["bootstrap"], seed + rnd)
-            if c == remaining[0]:
-                per_print.append(dict(round=rnd, candidate="(control)", **{lab: float(e) for lab, e in zip(data.labels, cur.error)}))
-            per_print.append(dict(round=rnd, candidate=c, **{lab: float(e) for lab, e in zip(data.labels, ho.error)}))
+            per_print.append(errors_row(rnd, c, ho.error))
             ok = accepted(stats, s)
             results[c] = (p, ho, stats, ok)
             effect_keys = [sp.name for sp in EFFECTS[c].params]
@@ -1011,7 +1014,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     bar.close()
 
     # the base model's errors as before_after.tsv scores them (round 1's control where it refitted better)
-    per_print.insert(0, dict(round=0, candidate="(base)", **{lab: float(e) for lab, e in zip(data.labels, base_ho.error)}))
+    per_print.insert(0, errors_row(0, "(base)", base_ho.error))
 
     # -- diagnostics before and after ----------------------------------------------------
     geo = geometry(data.masks, px, s)

@@ -607,29 +607,28 @@ class PrinterModel:
         gx = torch.fft.irfft(x * (2j * math.pi * fx), n=Nw, dim=-1)[..., : out_hw[1]]
         xy = torch.fft.ifft(spec * (2j * math.pi * fy)[:, None], dim=-2)[..., : out_hw[0], :]
         gy = torch.fft.irfft(xy, n=Nw, dim=-1)[..., : out_hw[1]]
-        if gradient and self.dose_terms:
+        grad = (gy, gx)
+        if gradient and self.dose_terms:  # the returned dose's gradient: the chain rule through the Hessian
+            if len(self.dose_terms) > 1:
+                raise NotImplementedError("the gradient of more than one dose term")
             wy, wx = (2j * math.pi * fy)[:, None], 2j * math.pi * fx
             hxx = torch.fft.irfft(x * wx * wx, n=Nw, dim=-1)[..., : out_hw[1]]
             hxy = torch.fft.irfft(xy * wx, n=Nw, dim=-1)[..., : out_hw[1]]
             hyy = torch.fft.irfft(torch.fft.ifft(spec * wy * wy, dim=-2)[..., : out_hw[0], :], n=Nw, dim=-1)[..., : out_hw[1]]
-            if len(self.dose_terms) > 1:  # the chain rule below is for one term on the blurred dose
-                raise NotImplementedError("the gradient of more than one dose term")
-            out_g = self.dose_terms[0].gradient(dose, gy, gx, hyy, hxy, hxx, theta)
-            for t in self.dose_terms:
-                dose = t.apply(dose, gy, gx, theta)
-            return dose, out_g[0], out_g[1]
+            grad = self.dose_terms[0].gradient(dose, gy, gx, hyy, hxy, hxx, theta)
         for t in self.dose_terms:
             dose = t.apply(dose, gy, gx, theta)
-        return (dose, gy, gx) if gradient else dose
+        return (dose, *grad) if gradient else dose
 
-    def dose(self, masks: torch.Tensor, theta: Theta, scale: float = 1.0, shape=None) -> torch.Tensor:
-        """(P, B, H, W) absorbed dose Gauss_sigma(ReLU(field) * M), zero padded (no wrap)."""
+    def dose(self, masks: torch.Tensor, theta: Theta, scale: float = 1.0, shape=None, gradient: bool = False):
+        """(P, B, H, W) absorbed dose Gauss_sigma(ReLU(field) * M), zero padded (no wrap);
+        ``gradient``: (dose, gy, gx) (``blur_spectrum``)."""
         masks = _as_masks(masks)
         _, H, W = masks.shape
         if shape is None:
             shape = padded_shape((H, W), self.support_px({k: v.detach().cpu() for k, v in theta.items()}), scale)
         spec = torch.fft.rfft2(self.exposure(masks, theta, scale), s=shape)
-        return self.blur_spectrum(spec, theta, shape, (H, W), scale)
+        return self.blur_spectrum(spec, theta, shape, (H, W), scale, gradient=gradient)
 
     def prints(self, masks: torch.Tensor, theta: Theta, temperature: float | None = None, scale: float = 1.0) -> torch.Tensor:
         """(P, B, H, W) prints: bool (hard threshold) or in (0, 1) (smooth, temperature > 0)."""
@@ -770,19 +769,16 @@ class FixedMasks:
     def dose(self, theta: Theta, masks: slice | None = None, gradient: bool = False):
         """(P, B, h, w) absorbed dose for P parameter sets (at every f-th pixel); ``masks``
         restricts it to a block of the masks (smaller temporaries). ``gradient``: (dose,
-        gy, gx), the blurred dose's gradient per design pixel from the same spectrum
+        gy, gx), the returned dose's gradient per design pixel from the same spectrum
         (``PrinterModel.blur_spectrum``)."""
         if self.support_px + 1e-6 < self.model.support_px({k: v.detach().cpu() for k, v in theta.items()}):
             raise ValueError("a kernel is wider than this evaluator's padding; build it with a larger support_px")
         sl = masks if masks is not None else slice(None)
         M = self.masks[sl]
         if not self.fast:
-            if gradient:
-                spec = torch.fft.rfft2(self.model.exposure(M, theta), s=self.full_shape)
-                out = self.model.blur_spectrum(spec, theta, self.full_shape, (self.H, self.W), gradient=True)
-                return tuple(t[..., :: self.f, :: self.f] for t in out)
-            d = self.model.dose(M, theta, shape=self.full_shape)
-            return d[..., :: self.f, :: self.f]
+            out = self.model.dose(M, theta, shape=self.full_shape, gradient=gradient)
+            sub = (Ellipsis, slice(None, None, self.f), slice(None, None, self.f))
+            return tuple(t[sub] for t in out) if gradient else out[sub]
         K = self.spectra.shape[0]
         c = torch.stack([theta[k] for k in self.basis_names], dim=1)  # (P, K)
         P = c.shape[0]
