@@ -65,6 +65,16 @@ def test_no_print_is_ok_with_its_pose_off(grating_batch):
     assert not wrong, wrong
 
 
+def test_a_print_whose_size_sets_its_scale_says_what_would_hold_it(grating_batch):
+    """The batch states no camera pixel size and zooms by image: a print that fails because
+    its scale rests on the size of a feature (the 6 px grating printed as one block) says
+    that a stated pixel size would hold it, and where to state one."""
+    sized = [why for st, why, _ in _pose_errors(grating_batch / "reg", grating_batch / "batch.truth").values()
+             if st == "failed" and "size of a feature" in why]
+    assert sized
+    assert all("no camera pixel size is stated" in why and "image_pixel_size_um" in why for why in sized), sized
+
+
 def test_a_grating_started_one_pitch_off_is_never_ok_there(grating_batch):
     """Start the pose search one pitch off: the chosen pose comes back, or the print fails
     (ambiguous, or, for a 10 px grating that this lab prints as one block and that settles

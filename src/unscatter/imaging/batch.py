@@ -744,6 +744,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     stated, stated_note = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo},
                                         {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}, s)
 
+    def no_size_note(mid) -> str:
+        """What would hold the scale of a print whose features' sizes set it, where the
+        batch knows nothing of it (no stated camera pixel size, and not one magnification
+        that its prints show): a stated one (``priors``)."""
+        if stated.get(mid) is not None or held_scale is not None:
+            return ""
+        return ("; no camera pixel size is stated, which would hold its scale: batch.yaml image_pixel_size_um (one "
+                "objective), or each image's TIFF resolution tags or OME-XML PhysicalSizeX")
+
     def off_scale(M) -> bool:
         return one_scale is not None and abs(log_scale(M) - one_scale[0]) > s.scale_sigmas * one_scale[1]
 
@@ -926,7 +935,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if not ch.fit.size_sd <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
-                           f"(more than {s.max_size_sd}){stated_note}")
+                           f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
