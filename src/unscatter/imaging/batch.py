@@ -898,7 +898,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         cov = coverage(M, mask, k.c.shape)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
                    evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
-                   pose_sd=round(ch.fit.pose_sd, 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3))
+                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3))
         for a in range(2):
             for b in range(3):
                 row[f"m{a}{b}"] = float(M[a, b])
@@ -931,7 +931,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"(rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
                            f"{rv['shift_y']:.1f}) fits almost as well (evidence {ch.evidence:.1f} < {s.min_evidence})")
         if not ch.fit.pose_sd <= s.max_pose_sd:
-            reasons.append(f"pose not determined by the print: uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})")
+            how = (f"uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})" if ch.fit.pose_sd < 1e3 else
+                   "free along some direction (a shift along a grating's lines, a turn of a disc)")
+            reasons.append(f"pose not determined by the print: {how}")
         if not ch.fit.size_sd <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
