@@ -300,9 +300,11 @@ def _margin_sets(arr: np.ndarray, params: Params, sets: list, per_draw: int, chu
             sub = {k: v[s * per_draw:(s + 1) * per_draw] for k, v in theta.items()}
             with torch.no_grad():
                 T = sub["T"].double().reshape(-1, 1, 1, 1)
-                _, gy, gx = sim.dose({k: v[:1] for k, v in sub.items()}, gradient=True)  # the first set's only
+                # the first set's dose with its gradient, the others' without (the Hessian's FFTs once)
+                D0, gy, gx = sim.dose({k: v[:1] for k, v in sub.items()}, gradient=True)
+                D = torch.cat([D0, sim.dose({k: v[1:] for k, v in sub.items()})]) if per_draw > 1 else D0
                 g = torch.sqrt(gx[0].double() ** 2 + gy[0].double() ** 2) / T[0]
-                yield b0, s, sim.dose(sub).double() / T - 1.0, g, sim.f
+                yield b0, s, D.double() / T - 1.0, g, sim.f
         if progress:
             progress(min(b0 + chunk, B), B)
 

@@ -945,12 +945,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         predicted = ch.fit.gain * tpl + ch.fit.offset
-        if printed.any() and float(predicted.max()) < thr:
+        peak = float(predicted.max())
+        if printed.any() and peak < thr:
             # a near-threshold print whose polymer the fit puts below the threshold everywhere:
             # what crosses it is noise (or a cure the template does not predict), and its pose
             # rests on the grey of uncured gel, not on a print's edges
             reasons.append(f"near the threshold: at this pose and dose the batch's template puts its polymer at "
-                           f"{100 * float(predicted.max()) / thr:.0f} % of the threshold at most, so the "
+                           f"{100 * peak / thr:.0f} % of the threshold at most, so the "
                            f"{int(printed.sum())} px above it are noise or a cure the template does not predict")
         row["solid_fraction"] = round(float(printed.mean()), 5)
         row["misfit"] = misfit_px(printed, predicted, thr)
