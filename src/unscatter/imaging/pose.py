@@ -397,8 +397,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             c_ += stiff * (log_scale(Ms) - float(np.log(f)) - scale_prior[0]) ** 2
         return 0.5 * c_
 
-    # last: the objective, sigma, stiffness, state, normal equations and step of the last
-    # state a step was taken from; lam: the damping, zero (Gauss-Newton) until a step fails
+    # last: the objective, sigma, stiffness, state and normal equations of the last state a
+    # step was taken from (the steps from it are judged at its sigma and stiffness); lam: the
+    # damping, zero (Gauss-Newton) until a step fails
     last, lam, rejected, stiff, last_move = None, 0.0, 0, 0.0, float("inf")
     for it in range(1, iters + 1):
         Iw = _warp(src, (Ms @ into)[:2], shape)
