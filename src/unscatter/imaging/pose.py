@@ -303,9 +303,10 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     nuisance numbers (``NUISANCE``, with their priors), with Levenberg-Marquardt damping:
     a step that raises the objective (Huber on the residual, the priors, a held scale) by
     more than ``RISE`` is refused and taken again from the same state, damped, and the
-    damping eases off as steps succeed (not with ``hold_nuisance``). Undamped, a print whose dose trades against its edge offset, or a dim
-    print fitted from the prior's dose, overshot to a dose that cures nothing; the priors
-    then pulled every nuisance number back and the pose walked off, called settled.
+    damping eases off as steps succeed (not with ``hold_nuisance``). Undamped, a print
+    whose dose trades against its edge offset, or a dim print fitted from the prior's
+    dose, overshot to a dose that cures nothing; the priors then pulled every nuisance
+    number back and the pose walked off, called settled.
 
     ``img`` is the corrected image, ``tmpl`` a PrintTemplate (its ``factor`` sets the
     resolution), ``B`` the mask's scattered dose on tmpl's grid, ``x`` the batch's
@@ -390,9 +391,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     def cost(r, valid, q, Ms, sigma, stiff):  # the objective that the steps lower: Huber, priors, held scale
         k = 2.0 * sigma
         a = np.abs(r[valid]).astype(np.float64)
-        c_ = float(np.where(a <= k, a * a, 2.0 * k * a - k * k).sum()) / sigma**2
-        if not hold_nuisance:
-            c_ += float((((q - q0) / qs) ** 2).sum())
+        c_ = float(np.where(a <= k, a * a, 2.0 * k * a - k * k).sum()) / sigma**2 + float((((q - q0) / qs) ** 2).sum())
         if scale_prior is not None:
             c_ += stiff * (log_scale(Ms) - float(np.log(f)) - scale_prior[0]) ** 2
         return 0.5 * c_
@@ -457,14 +456,14 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             H[kq, kq] += np.diag(1.0 / (qs * norm[kq]) ** 2)
             rhs[kq] -= (q - q0) / (qs**2 * norm[kq])
         H[np.diag_indices_from(H)] += 1e-9 * np.trace(H) / len(H)
-        here = (Ms, gain, offset, q)
-        if not hold_nuisance:  # the nuisance numbers are what overshoots
-            last = (cost(r, valid, q, Ms, sigma, stiff), sigma, stiff, here, (H, rhs, norm, npose))
+        state = (Ms, gain, offset, q)
+        if not hold_nuisance:  # the nuisance numbers are what overshoots: held, no step is judged
+            last = (cost(r, valid, q, Ms, sigma, stiff), sigma, stiff, state, (H, rhs, norm, npose))
         dz, move = step(H, rhs, norm, npose, lam)
         if lam > 0:  # settled is judged by the undamped step
             move = step(H, rhs, norm, npose, 0.0)[1]
         last_move = move
-        Ms, gain, offset, q = stepped(here, dz)
+        Ms, gain, offset, q = stepped(state, dz)
         if move < tol:
             break
         if known:
