@@ -89,3 +89,19 @@ def test_a_near_threshold_print_whose_fit_cures_nothing_is_not_ok(tmp_path):
     assert row["truth_solid"] == 0 and row["status"] == "failed" and "near the threshold" in row["reason"], row
     assert not [r["id"] for r in rows if r["silently_wrong"]]
 
+
+
+def test_an_anisotropic_labs_template_is_fitted_without_the_print_it_cannot_explain(tmp_path):
+    """Lab 2 of the registration benchmark's seed 1932003208 (scatter 1.6 times wider at
+    110 deg, 4.9 um of erosion, a stated pixel size): at its first pose, one of the 12
+    prints the template is fitted on is explained far worse than the others (84 % of its
+    variance left beyond noise, the median print's 11 %), and the template fitted with it
+    (90 % of the scattered light in its tail, a blur of 7.6 px) put a checkerboard 1.9 px
+    and a Siemens star 2.7 px off as `ok`. Fitted again without that print
+    (``template.well_fitted``), no print of the lab is silently wrong."""
+    bench = _bench()
+    _, rows = bench.run_lab(2, 1932003208, 32, tmp_path)
+    assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
+    assert sum(r["status"] == "ok" for r in rows) >= 10
+    fitted = read_yaml(tmp_path / "lab_02" / "reg" / "registration.yaml")["template_prints"]
+    assert len(fitted["left_out"]) == 1 and len(fitted["fitted"]) == 11, fitted

@@ -821,6 +821,24 @@ def test_no_hot_spot_is_found_where_the_field_is_smooth(hot_spot_prints):
     assert x2[13] == 0.0 and fit2 == fit, x2[13:]
 
 
+def test_a_print_far_worse_fitted_than_the_others_is_left_out_of_the_templates_fit(hot_spot_prints):
+    """A print whose image is turned a quarter off its mask (a first pose that is wrong)
+    is left out of the template's second fit; at the true numbers none of the noisy
+    prints is, small and faint ones included (their misfit is their noise's)."""
+    from unscatter.imaging.template import fit_template, misfit_beyond_noise, well_fitted
+
+    tmpl, truth, prints = hot_spot_prints
+    pairs = list(prints["hot"])
+    assert well_fitted(tmpl, pairs, truth) is pairs
+    assert max(misfit_beyond_noise(reg, tmpl(m, truth, d)) for m, reg, d in pairs) < 0.05
+    m, img, d = pairs[5]
+    pairs[5] = (m, np.ascontiguousarray(np.rot90(img)), d)
+    x, _ = fit_template(tmpl, pairs, truth, max_evals=200)
+    assert misfit_beyond_noise(pairs[5][1], tmpl(m, x, d)) > 0.5
+    kept = well_fitted(tmpl, pairs, x)
+    assert len(kept) == 11 and all(p[0] is not m for p in kept)
+
+
 def _dot_grid(q, seed=0, columns=(290, 345, 400, 455)):
     """Dots in two rows, 55 px apart (a repeat of isolated dots, under 1 % of the field),
     imaged as the print template at nuisance numbers ``q``, gain 2, noise 0.01."""

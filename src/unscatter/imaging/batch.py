@@ -20,7 +20,7 @@ from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
-from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, ncc
+from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, ncc, well_fitted
 
 log = logging.getLogger(__name__)
 
@@ -647,9 +647,16 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         return quarter.padded(masks[mid]), cv2.resize(reg, quarter.shape[::-1], interpolation=cv2.INTER_AREA), 1.0
 
     x = np.array(PrintTemplate.START)
+    template_prints = dict(fitted=list(fit_ids), left_out=[])  # registration.yaml: the prints the template was fitted on
     if fit_ids:
         pairs = list(pool.map(pair, fit_ids))
         x, fit = fit_template(quarter, pairs, x)
+        kept = well_fitted(quarter, pairs, x)
+        if len(kept) < len(pairs):  # fitted again without the prints it cannot explain (a first pose off)
+            template_prints = dict(fitted=[mid for mid, p in zip(fit_ids, pairs) if any(p is k for k in kept)],
+                                   left_out=[mid for mid, p in zip(fit_ids, pairs) if not any(p is k for k in kept)])
+            pairs = kept
+            x, fit = fit_template(quarter, pairs, x)
         x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map)  # a lamp hot spot, where the prints show one
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
@@ -980,6 +987,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
+                                                   template_prints=template_prints,
                                                    measurement=measurement_record(p, rows, s.level),
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed),

@@ -194,6 +194,10 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((x * y).sum() / (np.sqrt((x * x).sum() * (y * y).sum()) + 1e-12))
 
 
+TRIM = 3.0  # a print whose misfit beyond noise is this many times the median print's, and above MIN_TRIM, is left
+MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
+
+
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
 
@@ -217,6 +221,42 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600) -> 
 def mean_ncc(tmpl: PrintTemplate, pairs: list, x) -> float:
     """The template's mean NCC over ``pairs`` (as ``fit_template``'s)."""
     return float(np.mean([ncc(reg, tmpl(m, x, d)) for m, reg, d in pairs]))
+
+
+def well_fitted(tmpl: PrintTemplate, pairs: list, x) -> list:
+    """``pairs`` less those far worse fitted than the others (a first pose off, a part of
+    the print that did not cure), which pull every number of the template toward them.
+
+    A print's misfit is the share of its image's variance that the template (at its best
+    gain and offset) leaves unexplained beyond the image's noise (``misfit_beyond_noise``):
+    a small or faint print fits worse by its noise alone, and is not left out for that.
+    Left out: a misfit above ``TRIM`` times the median print's and above ``MIN_TRIM``;
+    none where that would leave fewer than half."""
+    bad = np.array([misfit_beyond_noise(reg, tmpl(m, x, d)) for m, reg, d in pairs])
+    keep = (bad <= TRIM * np.median(bad)) | (bad <= MIN_TRIM)
+    if keep.all() or keep.sum() < max(3, len(pairs) // 2):
+        return pairs
+    log.info("print template: fitted again without the %d of %d prints it fits worst (misfit beyond noise %s, the "
+             "median's %.3f)", (~keep).sum(), len(pairs), np.round(bad[~keep], 3), np.median(bad))
+    return [p for p, k in zip(pairs, keep) if k]
+
+
+def misfit_beyond_noise(img: np.ndarray, T: np.ndarray) -> float:
+    """The share of ``img``'s variance that ``T`` at its best gain and offset leaves
+    unexplained, less the share its noise accounts for (the noise variance from the median
+    absolute difference of neighbouring pixels, which edges hardly move); 0 for a
+    perfect fit of a noisy image, toward 1 for an image that is not ``T``."""
+    ok = np.isfinite(img) & np.isfinite(T)
+    if ok.sum() < 10:
+        return 1.0
+    a, t = img[ok] - img[ok].mean(), T[ok] - T[ok].mean()
+    var = float(a @ a) / a.size + 1e-24
+    gain = float(t @ a) / (float(t @ t) + 1e-24)
+    res = float(((a - gain * t) ** 2).mean())
+    d = np.diff(np.where(ok, img, np.nan), axis=1)
+    d = d[np.isfinite(d)]
+    noise = (1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2 / 2 if d.size else 0.0
+    return max(res - noise, 0.0) / var
 
 
 class FieldFit:
