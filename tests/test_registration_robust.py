@@ -839,6 +839,19 @@ def test_a_print_far_worse_fitted_than_the_others_is_left_out_of_the_templates_f
     assert len(kept) == 11 and all(p[0] is not m for p in kept)
 
 
+def test_an_image_may_be_as_much_dimmer_as_the_batchs_prints_vary():
+    """Gains of the determined prints whose logs lie 0.1 apart (a median absolute
+    deviation of 0.1, a robust sd of 0.148): an image may be exp(-faint_sigmas x 0.148) as bright as
+    the median; an outlier does not widen it; with fewer than three prints, no allowance."""
+    from unscatter.imaging.batch import Settings, dimmest
+
+    s = Settings()
+    g = list(np.exp([-0.2, -0.1, 0.0, 0.1, 0.2]))
+    assert dimmest(g, s) == pytest.approx(np.exp(-s.faint_sigmas * 0.14826))
+    assert dimmest(g + [50.0], s) > np.exp(-s.faint_sigmas * 0.3)  # its log, 3.9, would give an sd of 1.5
+    assert dimmest([1.0, 2.0], s) == 1.0 and dimmest([], s) == 1.0
+
+
 def _dot_grid(q, seed=0, columns=(290, 345, 400, 455)):
     """Dots in two rows, 55 px apart (a repeat of isolated dots, under 1 % of the field),
     imaged as the print template at nuisance numbers ``q``, gain 2, noise 0.01."""

@@ -78,6 +78,7 @@ class Settings:
     # further than this from the whole print's takes the marks' pose
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
+    faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -457,6 +458,16 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
     lim = max(med + spread, np.log(s.min_misfit_px))
     return {k: f"misfit {v:.1f} px per edge px, the batch's median {np.exp(med):.2f}" for k, v in vals.items()
             if np.log(max(v, 1e-3)) > lim}
+
+
+def dimmest(gains: list, s: Settings) -> float:
+    """How much dimmer than the batch's median print an image may show the same polymer:
+    exp(-faint_sigmas sd) for the robust sd (1.4826 MAD) of the log gains of the batch's
+    determined prints (the lamp and the stain vary by image), 1 with fewer than 3 of them."""
+    g = np.log(np.asarray([v for v in gains if v > 0], float))
+    if g.size < 3:
+        return 1.0
+    return float(np.exp(-s.faint_sigmas * 1.4826 * np.median(np.abs(g - np.median(g)))))
 
 
 def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
@@ -857,21 +868,25 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # printed could image that bright: its features cured at the print level, their edges
     # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
     # and blurred by the microscope (thin lines of an eroding batch image far below the
-    # level they cured at)
+    # level they cured at), in an image as much dimmer than the batch's median as its
+    # prints' brightness varies (lamp, stain: ``dimmest``)
     erode = max(0.0, -(centre[0] - edge_sd[0]))
+    dim = dimmest([choices[mid].fit.gain for mid in placed_ids], s)
     empty, faint = set(), {}
     for mid, n_above in low.items():
         peak = float(smooth[mid].max())
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
         reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)), erode)
-        if np.isfinite(thr) and peak >= max(s.faint_fraction * reach * thr, 6 * corr[mid].noise):
+        if np.isfinite(thr) and peak >= max(s.faint_fraction * dim * reach * thr, 6 * corr[mid].noise):
             # polymer this bright may have cured at the print level in features that the
             # microscope's blur spreads below the threshold (thin lines, small dots): not
             # evidence that nothing printed
             faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
                           f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level"
                           + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
-                          + f", would image at {100 * reach:.0f} % of it: whether it printed cannot be told, and it is not empty")
+                          + f", would image at {100 * reach:.0f} % of it"
+                          + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
+                          + ": whether it printed cannot be told, and it is not empty")
         else:
             empty.add(mid)
 
