@@ -110,7 +110,7 @@ def test_an_anisotropic_labs_template_is_fitted_without_the_print_it_cannot_expl
 def test_a_print_just_below_the_threshold_in_a_batch_of_uneven_brightness_is_not_empty(tmp_path):
     """Lab 0 of the registration benchmark's seed 1932003208 (a lamp that varies 18 % from
     image to image): a near-threshold print cured 0.2 % of its field, and its polymer
-    images at 97 % of the batch's threshold, 60 noise sds over the background. It was
+    images at 97 % of the batch's threshold, over 50 noise sds above the background. It was
     reported `empty` (its features, cured at the print level, would image at 99 % of the
     threshold in an image of the batch's median brightness): silently wrong. In an image
     as dim as the batch's prints may be, they image lower, so it is `faint`."""

@@ -841,8 +841,9 @@ def test_a_print_far_worse_fitted_than_the_others_is_left_out_of_the_templates_f
 
 def test_an_image_may_be_as_much_dimmer_as_the_batchs_prints_vary():
     """Gains of the determined prints whose logs lie 0.1 apart (a median absolute
-    deviation of 0.1, a robust sd of 0.148): an image may be exp(-faint_sigmas x 0.148) as bright as
-    the median; an outlier does not widen it; with fewer than three prints, no allowance."""
+    deviation of 0.1, a robust sd of 0.148): an image may be exp(-faint_sigmas x 0.148)
+    as bright as the median; an outlier does not widen it; with fewer than three prints,
+    no allowance."""
     from unscatter.imaging.batch import Settings, dimmest
 
     s = Settings()
