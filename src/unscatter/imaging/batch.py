@@ -264,9 +264,8 @@ def batch_rotation(rotations: list, s: Settings) -> tuple[float, float] | None:
     within +-a (a sample placed by hand) about 3 a, for one fixed rotation 2 deg. None with fewer than ``batch_range_min`` prints."""
     if len(rotations) < s.batch_range_min:
         return None
-    v = np.asarray(rotations, float)
-    centre = float(np.median(v))
-    spread = max(s.min_rotation_spread, 1.4826 * float(np.median(np.abs(v - centre))))
+    centre, sd = median_sd(rotations)
+    spread = max(s.min_rotation_spread, sd)
     return centre, s.rotation_mads * spread
 
 
@@ -282,9 +281,7 @@ def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     """
     if len(fits) < s.scale_min_prints:
         return None
-    ls = np.array([log_scale(f.M) for f in fits])
-    centre = float(np.median(ls))
-    spread = 1.4826 * float(np.median(np.abs(ls - centre)))
+    centre, spread = median_sd([log_scale(f.M) for f in fits])
     if spread > s.fixed_scale_sd:
         return None
     return centre, max(spread, s.min_scale_sd)
@@ -449,9 +446,7 @@ def mismatched(rows: list[dict], s: Settings) -> dict:
     ref = [r["misfit"] for r in rows if (r["status"] == "ok" or determinacy_only(r["reason"])) and r["id"] in vals]
     if len(ref) < 5:
         return {k: f"misfit {v:.1f} px per edge px above {s.max_misfit_px}" for k, v in vals.items() if v > s.max_misfit_px}
-    lv = np.log(np.maximum(np.array(ref), 1e-3))
-    med = float(np.median(lv))
-    mad = 1.4826 * float(np.median(np.abs(lv - med)))
+    med, mad = median_sd(np.log(np.maximum(np.array(ref), 1e-3)))
     # prints of different patterns misfit differently (a fine grating more than a block), so
     # the spread only widens the limit up to ``mismatch_factor_max`` times the median
     spread = min(max(np.log(s.mismatch_factor), s.mismatch_sigmas * mad), np.log(s.mismatch_factor_max))
@@ -464,10 +459,15 @@ def dimmest(gains: list, s: Settings) -> float:
     """How much dimmer than the batch's median print an image may show the same polymer:
     exp(-faint_sigmas sd) for the robust sd (1.4826 MAD) of the log gains of the batch's
     determined prints (the lamp and the stain vary by image), 1 with fewer than 3 of them."""
-    g = np.log(np.asarray([v for v in gains if v > 0], float))
-    if g.size < 3:
-        return 1.0
-    return float(np.exp(-s.faint_sigmas * 1.4826 * np.median(np.abs(g - np.median(g)))))
+    g = [np.log(v) for v in gains if v > 0]
+    return float(np.exp(-s.faint_sigmas * median_sd(g)[1])) if len(g) >= 3 else 1.0
+
+
+def median_sd(values) -> tuple[float, float]:
+    """The median of ``values`` and their robust standard deviation (1.4826 MAD)."""
+    v = np.asarray(values, float)
+    centre = float(np.median(v))
+    return centre, 1.4826 * float(np.median(np.abs(v - centre)))
 
 
 def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
