@@ -489,20 +489,6 @@ def test_too_few_prints_or_folds_are_rejected(tmp_path):
 # ------------------------------------------------------------------- candidate fits
 
 
-def _library_prints(m, values, masks, rng, noise=0.03):
-    """Prints of the library model ``m`` at ``values`` with a multiplicative dose noise
-    correlated over a few pixels (as cells give)."""
-    from scipy import ndimage
-
-    with torch.no_grad():
-        dose = m.dose(masks_to_tensor(masks, CPU), m.theta(values, CPU))[0].numpy()
-    out = []
-    for d in dose:
-        n = ndimage.gaussian_filter(rng.standard_normal(d.shape), 2.0)
-        out.append(d * (1 + noise * n / n.std()) >= values["T"])
-    return np.stack(out)
-
-
 def test_candidate_fit_reaches_the_true_parameters_error():
     """A heavy tail fitted from the Eq. 1 fit (its tail at 0, where the gradient does not
     reach the tail's length) must reach, on held-out prints, the error of the true
@@ -517,8 +503,9 @@ def test_candidate_fit_reaches_the_true_parameters_error():
                             tail_length_px=12.0)
     masks = np.stack(list(trial_masks(12, seed=0, size=96).values()))
     held = np.stack(list(trial_masks(8, seed=5, size=96).values()))
-    data = SimpleNamespace(masks=masks, prints=_library_prints(m, truth, masks, rng))
-    held_data = SimpleNamespace(masks=held, prints=_library_prints(m, truth, held, rng))
+    # prints of the library model with a dose noise correlated over 2 px, as cells give
+    data = SimpleNamespace(masks=masks, prints=simulate(p.with_values(**truth), masks, dose_noise=0.03, rng=rng))
+    held_data = SimpleNamespace(masks=held, prints=simulate(p.with_values(**truth), held, dose_noise=0.03, rng=rng))
     s = {**DEFAULTS, **QUICK, "objective": "mismatch", "area_floor": 0.02}
     # the warm start the diagnosis gives: Eq. 1's fit (here: Eq. 1 with the truth's field
     # and a wider kernel, lower threshold), the tail at its neutral 0
@@ -562,3 +549,64 @@ def test_refinement_keeps_kernel_parameters_inside_the_padding():
 
     refine(Space(pa), Rounder(), get_model(pa.model), pa.values | dict(aniso_ratio=0.6, sigma_px=11.0), CPU, (0.1,), 5)
     assert min(v["aniso_ratio"] for v in seen) >= pa.bounds["aniso_ratio"][0] - 1e-4
+
+
+def _bench_fit_recovery():
+    import importlib.util
+    import sys
+
+    root = Path(__file__).resolve().parents[1] / "benchmarks"
+    sys.path.insert(0, str(root))  # it imports its sibling bench_diagnosis
+    try:
+        spec = importlib.util.spec_from_file_location("bench_fit_recovery", root / "bench_fit_recovery.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+    finally:
+        sys.path.remove(str(root))
+    return mod
+
+
+# (effect, seed of the parameter draw): the benchmark's draw (bench_fit_recovery.draw_truth)
+RECOVERY_CASES = [("heavy_tail", 11), ("anisotropy", 12), ("dose_nonlinearity", 13), ("illumination_field", 14),
+                  ("edge_offset", 15)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("effect, seed", RECOVERY_CASES)
+def test_a_candidate_fit_reaches_the_optimum_of_its_family(effect, seed, tmp_path):
+    """Prints of Eq. 1 plus one library effect at random parameters, through a dose noise
+    correlated over 2 px (as cells give); Eq. 1 calibrated on them, then the diagnosis with
+    that one candidate, both with their defaults. The truth is a point of the fitted
+    family, so the fit must reach its objective on the prints it was fitted to (above it,
+    the fit stopped short of the optimum: with the refinement ending at temperature 0.03
+    and a fixed 20 iterations, 5 of 10 fits of bench_fit_recovery's seed 146219 did, up to
+    2.6 % above); it must predict fresh prints within 2 % of the truth's error, and its
+    parameters must lie within the reported spread of the truth (3.18 spreads: the 95 %
+    point of a t with the k - 1 = 3 degrees of freedom of the 4 fold fits)."""
+    bench = _bench_fit_recovery()
+    rng = np.random.default_rng(seed)
+    truth = bench.draw_truth(rng, effect)
+    base = default_params("eq1", pixel_size_um=5.0)
+    p_true = extend_params(base, [effect]).with_values(**truth)
+    masks = trial_masks(24, seed=0, size=160)
+    M = np.stack(list(masks.values()))
+    prints = simulate(p_true, M, dose_noise=0.03, rng=rng)
+    batch = bench._write_batch(tmp_path / "prints", masks, dict(zip(masks, prints)), 5.0)
+    calibrate([batch], tmp_path / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False)
+    # the acceptance takes any held-out gain its bootstrap puts above 0: this judges the fit, while the test's
+    # power is the power study's (bench_diagnosis); heavy_tail's draw here gains 4.1 % at p 0.028, above max_p
+    r = diagnose([batch], tmp_path / "cal" / "params.yaml", tmp_path / "diag", candidates=[effect], figures=False,
+                 max_p=1.0, min_improvement=0.0, **QUIET)
+    assert r["effects"] == [effect]
+    sel = load_params(tmp_path / "diag" / "model.yaml")
+    train = float(np.mean(simulate(sel, M) != prints)) / float(np.mean(simulate(p_true, M) != prints))
+    assert train <= 1.01, (train, sel.values, truth)
+    H = np.stack(list(trial_masks(24, seed=seed + 100, size=160).values()))
+    held = simulate(p_true, H, dose_noise=0.03, rng=rng)
+    ratio = float(np.mean(simulate(sel, H) != held)) / float(np.mean(simulate(p_true, H) != held))
+    assert ratio <= 1.02, (ratio, sel.values, truth)
+    tv, fv = bench.canonical(truth), bench.canonical(sel.values)
+    spread = sel.info["parameter_extras"]
+    for k in (sp.name for sp in EFFECTS[effect].params):
+        z = abs(bench.param_error(k, fv[k], tv[k])) / spread[k]["std"]
+        assert z <= 3.18, (k, fv[k], tv[k], spread[k]["std"])

@@ -74,6 +74,7 @@ from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
 from .calibration import load_prints
 from .fitting import (
     OBJECTIVES,
+    REFINE_TOL,
     Objective,
     Space,
     band_factor,
@@ -113,8 +114,9 @@ DEFAULTS = dict(
     ga_size=128,  # GA sampling (about this many samples a side; see fitting.grid_factor)
     refine=True,
     refine_size=128,
-    temperatures=(0.1, 0.03),
-    refine_iters=20,  # L-BFGS iterations per temperature: the refinement finds the effects (GA: the box)
+    temperatures=(0.1, 0.03, 0.01),  # the refinement's, as the calibration's (calibration.DEFAULTS)
+    refine_iters=100,  # L-BFGS iterations per temperature, at most: the refinement finds the effects (GA: the box) ...
+    refine_tol=REFINE_TOL,  # ... and stops once the objective changes by less than this share (fitting.refine)
     # a fit's result is kept where it lowers the hard objective on about this many samples a side (every 2nd pixel
     # at 512 x 512: exact dose samples, an unbiased subsample of the objective; every pixel took 27 of 216 s there)
     check_size=256,
@@ -154,7 +156,7 @@ DEFAULTS = dict(
     objective=None,
     area_floor=None,  # pixel_error's floor on the printed area (None: the calibration's, else 0.02)
 )
-QUICK = dict(folds=3, population=8, generations=2, refine_iters=12, ga_size=64, refine_size=64, bootstrap=1000, starts=4,
+QUICK = dict(folds=3, population=8, generations=2, refine_iters=30, ga_size=64, refine_size=64, bootstrap=1000, starts=4,
              permutations=499)
 
 ERRORS = {
@@ -230,7 +232,7 @@ class _Context:
                 lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
         space = Space(p, lo, hi)
         f_ref = band_factor(self.sim, self.model, centre, self.f_ref) if self.f_ref else None
-        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters", "objective", "area_floor")},
+        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters", "refine_tol", "objective", "area_floor")},
                     "progress": False}
         init = [space.encode(centre)] + ([space.encode(start)] if centre is not start else [])
         fit = fit_params(space, self.model, obj, f_ga, f_ref, self.f_check, self.device, seed, settings, s["population"],

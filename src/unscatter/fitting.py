@@ -282,10 +282,22 @@ def run_ga(space: Space, objective: Objective, model, device, seed: int, populat
 # ----------------------------------------------------------------------- refinement
 
 
-def refine(space: Space, objective: Objective, model, values: dict, device, temperatures=(0.1, 0.03), iters=12) -> dict:
-    """L-BFGS on the free parameters through the smooth (sigmoid) model.
+REFINE_TOL = 1e-6  # a temperature's L-BFGS stops when the objective changes by less than this share of its start
+
+
+def refine(space: Space, objective: Objective, model, values: dict, device, temperatures=(0.1, 0.03), iters=12,
+           tol: float | None = None, endpoints: bool = False):
+    """L-BFGS on the free parameters through the smooth (sigmoid) model, one run per
+    temperature (coarse to fine), each from the last one's end.
 
     Works in unit-box coordinates of the full bounds and clips to them at the end.
+    ``iters`` caps each run's iterations; with ``tol`` a run stops earlier, once the
+    smooth objective changes by less than ``tol`` of its value at the run's start (or the
+    step in the unit box is that small): it runs to convergence, not to a fixed budget.
+    Returns the values at the last temperature, or with ``endpoints`` the values at the
+    end of every temperature's run (the smoothest optimum is not the hard one's, and
+    the lowest temperature's objective is rough: the caller judges them by the hard
+    objective, as ``fit_params`` does).
     """
     u = torch.tensor(space.encode(values), dtype=torch.float32, device=device, requires_grad=True)
     lo = torch.tensor(space.lo, dtype=torch.float32, device=device)
@@ -302,22 +314,34 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
     # kernel parameters stay within their bounds, where the evaluator's padding holds the kernel
     # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1)
     kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
+
+    def clamp():
+        with torch.no_grad():  # stay where the evaluator's padding holds the kernel
+            u.clamp_(-0.5, 1.5)
+            for i in kern:
+                u[i].clamp_(0.0, 1.0)
+
+    ends = []
     for temp in temperatures:
-        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe")
+        scale = 1.0
+        if tol:  # the objective in units of its start, so that the tolerance is relative
+            clamp()
+            with torch.no_grad():
+                scale = max(float(objective.smooth(theta_of(u), temp)[0]), 1e-12)
+        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe",
+                                **({"tolerance_change": float(tol), "tolerance_grad": 1e-7} if tol else {}))
 
         def closure():
             opt.zero_grad()
-            with torch.no_grad():  # stay where the evaluator's padding holds the kernel
-                u.clamp_(-0.5, 1.5)
-                for i in kern:
-                    u[i].clamp_(0.0, 1.0)
-            loss = objective.smooth(theta_of(u), temp)[0]
+            clamp()
+            loss = objective.smooth(theta_of(u), temp)[0] / scale
             loss.backward()
             return loss
 
         opt.step(closure)
-    g = np.clip(u.detach().cpu().numpy().astype(float), 0, 1)
-    return {k: float(v[0]) for k, v in space.decode(g).items()}
+        g = np.clip(u.detach().cpu().numpy().astype(float), 0, 1)
+        ends.append({k: float(v[0]) for k, v in space.decode(g).items()})
+    return ends if endpoints else ends[-1]
 
 
 # ------------------------------------------------------------------------ one fit
@@ -336,8 +360,10 @@ class Fit:
 def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: int, device, seed: int, s: dict,
                population: int, generations: int, init=(), desc="GA", history=True) -> Fit:
     """GA on every ``f_ga``-th pixel, then the refinement on every ``f_ref``-th pixel
-    (None: no refinement), kept if it lowers the hard objective on every
-    ``f_check``-th pixel. ``obj(f)`` gives the objective at factor f.
+    (None: no refinement; ``s['temperatures']``, at most ``s['refine_iters']`` L-BFGS
+    iterations each, stopping at ``s['refine_tol']``): the end of the temperature with
+    the lowest hard objective on every ``f_check``-th pixel is kept if it is lower than
+    the GA's. ``obj(f)`` gives the objective at factor f.
 
     A factor is lowered when the kernel found is too narrow for it (``band_factor``).
     """
@@ -357,10 +383,12 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
     if f_ref is not None:
         f_ref = band_factor(sim, model, best, f_ref)
         factors["refine"] = f_ref
-        cand = refine(Space(space.params), obj(f_ref), model, best, device, s["temperatures"], s["refine_iters"])
-        f_cand = float(check.hard(model.theta(cand, device))[0])
-        if f_cand < f_best:  # the refinement is kept only if the hard objective improves
-            values, f, kept = cand, f_cand, True
+        ends = refine(Space(space.params), obj(f_ref), model, best, device, s["temperatures"], s["refine_iters"],
+                      tol=s.get("refine_tol"), endpoints=True)
+        scores = check.hard(model.theta({k: np.array([e[k] for e in ends]) for k in ends[0]}, device))
+        i = int(np.argmin(scores))
+        if scores[i] < f_best:  # the refinement is kept only if the hard objective improves
+            values, f, kept = ends[i], float(scores[i]), True
     return Fit(values, f, f_best, kept, hist if history else [], factors)
 
 

@@ -1206,11 +1206,16 @@ def masks_to_tensor(masks, device=None) -> torch.Tensor:
     return t.to(device or default_device())
 
 
-def simulate(params, masks, device=None, batch: int = 8, temperature: float | None = None) -> np.ndarray:
+def simulate(params, masks, device=None, batch: int = 8, temperature: float | None = None, dose_noise: float = 0.0,
+             noise_px: float = 2.0, rng=None) -> np.ndarray:
     """Prints of uint8 masks under one parameter set: bool (B, H, W), or (H, W) for one mask.
 
     ``params``: a Params or a path to params.yaml. With ``temperature`` the smooth
-    print (float32 in (0, 1)) is returned instead.
+    print (float32 in (0, 1)) is returned instead. With ``dose_noise`` the dose is
+    multiplied by 1 + dose_noise x a unit-variance Gaussian field correlated over
+    ``noise_px`` pixels (as cells scatter it) before the
+    threshold: noisy prints of the model itself, for tests and benchmarks of its fits
+    (``rng``: a numpy Generator or seed; None draws a fresh one).
     """
     if not isinstance(params, Params):
         params = load_params(params)
@@ -1220,9 +1225,18 @@ def simulate(params, masks, device=None, batch: int = 8, temperature: float | No
     theta = m.theta(params.values, device)
     t = masks_to_tensor(masks, "cpu")
     out = []
+    rng = np.random.default_rng(rng) if dose_noise else None
     with torch.no_grad():
         for i in range(0, t.shape[0], batch):
-            p = m.prints(t[i : i + batch].to(device), theta, temperature)[0]
+            if dose_noise:
+                from scipy import ndimage
+
+                dose = m.dose(t[i : i + batch].to(device), theta)
+                n = np.stack([ndimage.gaussian_filter(rng.standard_normal(dose.shape[2:]), noise_px) for _ in range(dose.shape[1])])
+                n = torch.as_tensor(n / n.std(axis=(1, 2), keepdims=True), dtype=dose.dtype, device=dose.device)
+                p = m.threshold.apply(dose * (1 + dose_noise * n), theta, temperature)[0]
+            else:
+                p = m.prints(t[i : i + batch].to(device), theta, temperature)[0]
             out.append(p.cpu().numpy())
     res = np.concatenate(out) if out else np.zeros((0,) + tuple(t.shape[1:]), bool)
     return res[0] if single else res
