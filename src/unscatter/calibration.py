@@ -100,7 +100,8 @@ DEFAULTS = dict(
     refine_size=256,  # the refinement's sampling (None: every pixel); the final check uses every pixel
     # smooth threshold, as a fraction of T, coarse to fine; the end of the temperature whose hard objective is lowest
     # is kept (fitting.fit_params): 0.03 smooths the edge more than the prints' own noise does, so its optimum is
-    # not the hard objective's (bench_fit_recovery: fits 1-3 % above the true parameters' objective without 0.01)
+    # not the hard objective's (bench_fit_recovery: with (0.1, 0.03) and a fixed 10-20 iterations, 5 of 10 fits
+    # ended 1-3 % above the true parameters' objective on their own prints)
     temperatures=(0.1, 0.03, 0.01),
     refine_iters=100,  # L-BFGS iterations per temperature (at most) ...
     refine_tol=REFINE_TOL,  # ... stopping earlier once the objective changes by less than this share (fitting.refine)

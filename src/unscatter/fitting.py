@@ -282,7 +282,10 @@ def run_ga(space: Space, objective: Objective, model, device, seed: int, populat
 # ----------------------------------------------------------------------- refinement
 
 
-REFINE_TOL = 1e-6  # a temperature's L-BFGS stops when the objective changes by less than this share of its start
+# a temperature's L-BFGS stops when the objective changes by less than this share of its start (bench_fit_recovery:
+# 1e-4 stopped in the valleys where the field terms trade, one lamp-field fit 3.7 % above the truth's objective;
+# 1e-5 reached it, as 1e-6 did in 2/3 of the time)
+REFINE_TOL = 1e-5
 
 
 def refine(space: Space, objective: Objective, model, values: dict, device, temperatures=(0.1, 0.03), iters=12,
@@ -329,7 +332,7 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             with torch.no_grad():
                 scale = max(float(objective.smooth(theta_of(u), temp)[0]), 1e-12)
         opt = torch.optim.LBFGS([u], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe",
-                                **({"tolerance_change": float(tol), "tolerance_grad": 1e-7} if tol else {}))
+                                **({"tolerance_change": float(tol)} if tol else {}))
 
         def closure():
             opt.zero_grad()
