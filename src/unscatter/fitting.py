@@ -282,9 +282,9 @@ def run_ga(space: Space, objective: Objective, model, device, seed: int, populat
 # ----------------------------------------------------------------------- refinement
 
 
-# a temperature's L-BFGS stops when the objective changes by less than this share of its start (bench_fit_recovery:
-# 1e-4 stopped in the valleys where the field terms trade, one lamp-field fit 3.7 % above the truth's objective;
-# 1e-5 reached it, as 1e-6 did in 2/3 of the time)
+# a temperature's L-BFGS stops when the objective changes by less than this share of its start (the lamp-field draw of
+# test_diagnosis' recovery test: 1e-4 stopped in the valley where the field terms trade, 3.7 % above the truth's
+# objective; 1e-5 reached it as 1e-6 did, in 2/3 of 1e-6's time)
 REFINE_TOL = 1e-5
 
 
