@@ -106,7 +106,7 @@ def param_error(name: str, fit: float, true: float) -> float:
     return (d + 90.0) % 180.0 - 90.0 if name == "aniso_angle_deg" else d
 
 
-def heldout_mismatch(params, masks: np.ndarray, prints: np.ndarray) -> float:
+def mismatch(params, masks: np.ndarray, prints: np.ndarray) -> float:
     return float(np.mean(simulate(params, masks) != prints))
 
 
@@ -142,6 +142,7 @@ def run(args) -> None:
     held = {f"paper_{k}": v for k, v in trial_masks(16, seed=seed % 100_000 + 1, size=args.size).items()}
     held.update(test_pattern_masks(16, seed=seed, size=args.size))
     H = np.stack(list(held.values()))
+    T = np.stack(list(trial.values()))
     base = default_params("eq1", pixel_size_um=PX_UM)
     cases, prows = [], []
     head = (f"{'case':<5}{'effect':<20}{'truth (effect)':<34}{'accepted':<9}{'ratio':>7}{'cv':>7}{'train':>7}{'eq1':>7}{'max |z|':>9}"
@@ -155,7 +156,7 @@ def run(args) -> None:
             crng = np.random.default_rng(case_seed)
             truth = draw_truth(crng, effect)
             p_true = extend_params(base, [effect]).with_values(**truth)
-            prints = simulate(p_true, np.stack(list(trial.values())), dose_noise=args.noise, rng=crng)
+            prints = simulate(p_true, T, dose_noise=args.noise, rng=crng)
             held_prints = simulate(p_true, H, dose_noise=args.noise, rng=crng)
             d = root / f"case{ci:03d}_{effect}"
             batch = _write_batch(d / "prints", trial, dict(zip(trial, prints)), PX_UM)
@@ -173,16 +174,15 @@ def run(args) -> None:
             accepted = effect in r["effects"]
             # the effect's fit, whether accepted or not: the ranking's fold mean is all the diagnosis keeps of a
             # rejected candidate, so a rejected effect is scored as the model the diagnosis returns (Eq. 1)
-            e_true = heldout_mismatch(p_true, H, held_prints)
-            e_fit = heldout_mismatch(sel, H, held_prints)
-            e_eq1 = heldout_mismatch(eq1, H, held_prints)
+            e_true = mismatch(p_true, H, held_prints)
+            e_fit = mismatch(sel, H, held_prints)
+            e_eq1 = mismatch(eq1, H, held_prints)
             # the candidate's k-fold held-out error in the diagnosis against the truth's error on the same prints
             cand = [x for x in r["rounds"] if x["round"] == 1 and x["candidate"] == effect]
-            T = np.stack(list(trial.values()))
-            e_true_trial = float(np.mean(prints != simulate(p_true, T)))
+            e_true_trial = mismatch(p_true, T, prints)
             # the optimiser's own test: the fitted model's objective on the prints it was fitted to, against the
             # truth's (a feasible point of the same family): above 1, the fit stopped short of the optimum
-            train_ratio = float(np.mean(prints != simulate(sel, T))) / e_true_trial
+            train_ratio = mismatch(sel, T, prints) / e_true_trial
             cv_ratio = cand[0]["heldout_mismatch"] / e_true_trial if cand else np.nan
             tv, fv = canonical(truth), canonical(sel.values)
             extras = (sel.info or {}).get("parameter_extras", {})

@@ -62,6 +62,7 @@ from .fitting import (
     cross_validate,
     fit_params,
     grid_factor,
+    hard_scores,
     refine,
     residual_rgb,
 )
@@ -413,12 +414,11 @@ def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Mea
     def at(b, f, temperatures):
         start = dict(fit.values, **{BLUR: float(b), "sigma_px": float(np.sqrt(max(width2 - b * b, sig_lo**2)))})
         p_b = params.with_values(**{BLUR: float(b)})
-        cand = []
+        tried = [start]
         if f is not None:
-            cand = refine(Space(p_b), obj(band_factor(obj(1).sim, m, start, f)), m, start, device, temperatures, s["refine_iters"],
-                          tol=s["refine_tol"], endpoints=True)
-        tried = [start] + ([] if f is None else cand)
-        scores = check.hard(m.theta({k: np.array([t[k] for t in tried]) for k in start}, device))
+            tried += refine(Space(p_b), obj(band_factor(obj(1).sim, m, start, f)), m, start, device, temperatures,
+                            s["refine_iters"], tol=s["refine_tol"], endpoints=True)
+        scores = hard_scores(check, m, tried, device)
         i = int(np.argmin(scores))  # the start, or the temperature's end with the lowest hard objective
         return tried[i], float(scores[i])
 

@@ -81,6 +81,7 @@ from .fitting import (
     build_objective,
     fit_params,
     grid_factor,
+    hard_scores,
     per_print_error,
     print_weights,
     refine,
@@ -257,9 +258,6 @@ class _Context:
         temps = s["temperatures"][:1]
         screen = min(int(s["start_screen_iters"]), int(s["start_iters"]))
 
-        def hard(values: list) -> np.ndarray:
-            return objective.hard(self.model.theta({k: np.array([t[k] for t in values]) for k in values[0]}, self.device))
-
         screened = []
         for u in pts:
             st = dict(start)
@@ -267,10 +265,10 @@ class _Context:
                 st[full.names[i]] = float(full.lo[i] + u[j] * (full.hi[i] - full.lo[i]))
             screened.append(refine(full, objective, self.model, st, self.device, temps, screen))
         rest = int(s["start_iters"]) - screen
-        keep = set(np.argsort(hard(screened))[: int(s["start_keep"])].tolist()) if rest > 0 else set()
+        keep = set(np.argsort(hard_scores(objective, self.model, screened, self.device))[: int(s["start_keep"])].tolist()) if rest > 0 else set()
         tried = [dict(start)] + [refine(full, objective, self.model, v, self.device, temps, rest) if i in keep else v
                                  for i, v in enumerate(screened)]
-        scores = hard(tried)
+        scores = hard_scores(objective, self.model, tried, self.device)
         return tried[int(np.argmin(scores))]
 
     def predict(self, values: dict, idx) -> np.ndarray:

@@ -348,6 +348,11 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
     return ends if endpoints else ends[-1]
 
 
+def hard_scores(objective: Objective, model, values: list, device) -> np.ndarray:
+    """The hard objective of each of several parameter sets (dicts of the same keys), as one batch."""
+    return objective.hard(model.theta({k: np.array([v[k] for v in values]) for k in values[0]}, device))
+
+
 # ------------------------------------------------------------------------ one fit
 
 
@@ -389,7 +394,7 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
         factors["refine"] = f_ref
         ends = refine(Space(space.params), obj(f_ref), model, best, device, s["temperatures"], s["refine_iters"],
                       tol=s.get("refine_tol"), endpoints=True)
-        scores = check.hard(model.theta({k: np.array([e[k] for e in ends]) for k in ends[0]}, device))
+        scores = hard_scores(check, model, ends, device)
         i = int(np.argmin(scores))
         if scores[i] < f_best:  # the refinement is kept only if the hard objective improves
             values, f, kept = ends[i], float(scores[i]), True

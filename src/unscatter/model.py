@@ -1213,9 +1213,9 @@ def simulate(params, masks, device=None, batch: int = 8, temperature: float | No
     ``params``: a Params or a path to params.yaml. With ``temperature`` the smooth
     print (float32 in (0, 1)) is returned instead. With ``dose_noise`` the dose is
     multiplied by 1 + dose_noise x a unit-variance Gaussian field correlated over
-    ``noise_px`` pixels (as cells scatter it) before the
-    threshold: noisy prints of the model itself, for tests and benchmarks of its fits
-    (``rng``: a numpy Generator or seed; None draws a fresh one).
+    ``noise_px`` pixels (as cells scatter it) before the threshold: noisy prints of the
+    model itself, for tests and benchmarks of its fits (``rng``: a numpy Generator or
+    seed; None draws a fresh one).
     """
     if not isinstance(params, Params):
         params = load_params(params)
@@ -1225,19 +1225,18 @@ def simulate(params, masks, device=None, batch: int = 8, temperature: float | No
     theta = m.theta(params.values, device)
     t = masks_to_tensor(masks, "cpu")
     out = []
-    rng = np.random.default_rng(rng) if dose_noise else None
+    if dose_noise:
+        from scipy import ndimage
+
+        rng = np.random.default_rng(rng)
     with torch.no_grad():
         for i in range(0, t.shape[0], batch):
+            dose = m.dose(t[i : i + batch].to(device), theta)
             if dose_noise:
-                from scipy import ndimage
-
-                dose = m.dose(t[i : i + batch].to(device), theta)
                 n = np.stack([ndimage.gaussian_filter(rng.standard_normal(dose.shape[2:]), noise_px) for _ in range(dose.shape[1])])
                 n = torch.as_tensor(n / n.std(axis=(1, 2), keepdims=True), dtype=dose.dtype, device=dose.device)
-                p = m.threshold.apply(dose * (1 + dose_noise * n), theta, temperature)[0]
-            else:
-                p = m.prints(t[i : i + batch].to(device), theta, temperature)[0]
-            out.append(p.cpu().numpy())
+                dose = dose * (1 + dose_noise * n)
+            out.append(m.threshold.apply(dose, theta, temperature)[0].cpu().numpy())
     res = np.concatenate(out) if out else np.zeros((0,) + tuple(t.shape[1:]), bool)
     return res[0] if single else res
 
