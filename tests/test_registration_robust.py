@@ -576,9 +576,8 @@ def test_a_star_under_anisotropic_scatter_is_never_chosen_one_spoke_off():
 def anisotropic_batch(tmp_path_factory):
     """Twelve paper trial masks printed with a wide core that scatters 1.7 times wider along
     50 deg than across it, near the threshold (0.7; gel 0.5: features shrink), imaged with
-    a 3 px blur: a lab like the random one whose prints' first poses, against the blurred
-    mask, were 3 to 45 px off; the template fitted at them here comes out far too wide
-    (sigma 14 to 25 px where the lab's is 8)."""
+    a 3 px blur: a lab whose prints' first poses, against the blurred mask, are 3 to 30 px
+    off, so that the template fitted there came out blurred (sigma 22 px, not 8)."""
     root = tmp_path_factory.mktemp("aniso")
     for k, mask in patterns.trial_masks(12, seed=11).items():
         write_png(root / "masks" / f"{k}.png", mask)

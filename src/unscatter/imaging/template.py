@@ -22,9 +22,8 @@ pose toward it. Anisotropic scattering (an elliptical core, of axes sigma e^(L/2
 and sigma e^(-L/2) across, the area of the round one) grows each feature more along one
 direction than across it; a round core cannot follow that, and the pose and scale of a
 print then trade against it (1.5 to 2 px off in labs with a 1.4- to 1.7-fold ratio). Its
-two numbers are the batch's, fitted with the others. This is a registration nuisance
-model, not the calibrated printer model: it only has to put the print's edges where the
-image has them.
+two numbers are the batch's, fitted with the others. This is a registration nuisance model, not the calibrated printer
+model: it only has to put the print's edges where the image has them.
 """
 
 from __future__ import annotations
@@ -63,9 +62,9 @@ def core_blur(e: np.ndarray, sigma: float, c: float = 0.0, s: float = 0.0) -> np
     (c, s) = L (cos 2a, sin 2a), a from the column axis toward the row axis; OpenCV's
     (separable) Gaussian where it is round. An elliptical Gaussian is not separable along
     the grid's axes, so it is applied as a product in Fourier space (scipy.fft), with its
-    exact transform exp(-2 pi^2 k^T Sigma k). The grid wraps around where OpenCV's filter
-    reflects at the border; the two agree while the exposure keeps off the border by a few
-    sigma (the template's margin is 32 design px, and a mask's border rarely exposes)."""
+    exact transform exp(-2 pi^2 k^T Sigma k): the grid wraps around where the reflected
+    filter mirrors, which is the same on a grid whose border holds no exposure within
+    four sigma (the template's margin)."""
     L = float(np.hypot(c, s))
     if L < 1e-3:
         return cv2.GaussianBlur(e, (0, 0), sigma)
@@ -252,8 +251,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     piecewise smooth and the evaluation is cheap at quarter resolution. Powell moves along
     one direction at a time, and along the cure's and the microscope's numbers the
     scattered dose stays what it was: it is kept for the last scattering numbers. ``pool``:
-    a map that runs each half of the prints as a task (OpenCV and the FFT release the GIL;
-    10 % faster than one thread on 12 prints of 144 x 144 px).
+    a map over the prints (OpenCV and the FFT release the GIL: threads run them at once).
     """
     from scipy.optimize import minimize
 
@@ -270,7 +268,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
         x[17:19] = tmpl.anisotropy(x)  # held within its bound (beyond it the cost is flat, and Powell wanders)
         return x
 
-    def part(x, idx, scatter):  # the NCCs of prints idx (a task per print cost more in overhead than it saved)
+    def part(x, idx, scatter):  # the NCCs of prints idx (a task per core: one a print costs more than it does)
         if scatter:
             for i in idx:
                 B[i] = tmpl.exposure(pairs[i][0], x)
