@@ -8,8 +8,7 @@ the field in our measurements). The print template predicts which parts of a mas
 
     exposure   E = m (1 + fx X + fy Y + fxx X^2 + fxy X Y + fyy Y^2
                       + hot exp(-((X - hot_x)^2 + (Y - hot_y)^2) / (2 hot_width^2)))
-    scattered  B = (1 - tail) G_Sigma * E + tail G_tail_sigma * E
-    core       Sigma = sigma^2 R(a) diag(e^L, e^-L) R(a)^T,  (aniso_c, aniso_s) = L (cos 2a, sin 2a)
+    scattered  B = (1 - tail) G_sigma * E + tail G_tail_sigma * E
     cured      R = 1 - exp(-max(dose B - gel, 0) / k)
     imaged     T = (1 - haze) G_blur * R + haze G_haze_sigma * R
 
@@ -18,11 +17,7 @@ that they cannot trade off against any one print's pose; each print has its own
 ``dose`` (lamp and exposure vary between prints), fitted together with its pose by
 ``pose.refine``. The lamp's hot spot (``hot``, zero unless ``fit_hot_spot`` finds one)
 is a bump the quadratic field cannot follow: features near it print larger and pull a
-pose toward it. Anisotropic scattering (an elliptical core, of axes sigma e^(L/2) along a
-and sigma e^(-L/2) across, the area of the round one) grows each feature more along one
-direction than across it; a round core cannot follow that, and the pose and scale of a
-print then trade against it (1.5 to 2 px off in labs with a 1.4- to 1.7-fold ratio). Its
-two numbers are the batch's, fitted with the others. This is a registration nuisance model, not the calibrated printer
+pose toward it. This is a registration nuisance model, not the calibrated printer
 model: it only has to put the print's edges where the image has them.
 """
 
@@ -57,27 +52,6 @@ def gaussian(a: np.ndarray, sigma: float, border: int = cv2.BORDER_REFLECT_101) 
     return cv2.resize(small, (W, H), interpolation=cv2.INTER_LINEAR)[:h, :w]
 
 
-def core_blur(e: np.ndarray, sigma: float, c: float = 0.0, s: float = 0.0) -> np.ndarray:
-    """G_Sigma * e for the elliptical Gaussian Sigma = sigma^2 R(a) diag(e^L, e^-L) R(a)^T,
-    (c, s) = L (cos 2a, sin 2a), a from the column axis toward the row axis; OpenCV's
-    (separable) Gaussian where it is round. An elliptical Gaussian is not separable along
-    the grid's axes, so it is applied as a product in Fourier space (scipy.fft), with its
-    exact transform exp(-2 pi^2 k^T Sigma k): the grid wraps around where the reflected
-    filter mirrors, which is the same on a grid whose border holds no exposure within
-    four sigma (the template's margin)."""
-    L = float(np.hypot(c, s))
-    if L < 1e-3:
-        return cv2.GaussianBlur(e, (0, 0), sigma)
-    from scipy import fft
-
-    ch, sh = np.cosh(L), np.sinh(L)
-    sxx, syy, sxy = sigma**2 * (ch + sh * c / L), sigma**2 * (ch - sh * c / L), sigma**2 * sh * s / L
-    h, w = e.shape
-    ky, kx = fft.fftfreq(h)[:, None], fft.rfftfreq(w)[None, :]
-    H = np.exp(-2 * np.pi**2 * (sxx * kx * kx + 2 * sxy * kx * ky + syy * ky * ky)).astype(np.float32)
-    return fft.irfft2(fft.rfft2(e.astype(np.float32, copy=False)) * H, s=e.shape).astype(np.float32, copy=False)
-
-
 def reduction(sigma: float) -> int:
     """The reduction d of ``gaussian``'s grid for a kernel of ``sigma`` px (1: none)."""
     return int(sigma // 3) if sigma > 6.0 else 1
@@ -87,20 +61,11 @@ class PrintTemplate:
     """The print template on the padded design grid, optionally subsampled by ``factor``."""
 
     NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur", "haze", "haze_sigma",
-             "hot", "hot_x", "hot_y", "hot_width", "aniso_c", "aniso_s")
-    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35, 0.0, 0.0)
-    # the numbers Powell fits (``fit_template``), and the scales it works on (a unit step is a
-    # sensible first move for each); the hot spot's numbers are fitted by ``fit_hot_spot``
-    FREE = (*range(13), 17, 18)
-    SCATTER = (0, 3, 4, 5, 6, 7, 8, 9, 13, 14, 15, 16, 17, 18)  # the numbers the scattered dose depends on
-    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5, 0.03, 10.0, 0.1, 0.1)
-    # and the bounds the numbers are clipped to: beyond them the model clips (a tail share
-    # above 0.9, a haze above 0.5) and the cost is flat, or a wide core hides under a narrow
-    # tail (seen: sigma 55 px, tail share 62, its width 8 px). Clipped, not Powell's bounds,
-    # with which the fit on our own lab's prints stopped short (poses 1.2 px off)
-    BOUNDS = ((0.3, 25.0), (0.0, 1.5), (0.01, 3.0), *((-1.0, 1.0),) * 5, (0.0, 0.9), (2.0, 100.0), (0.3, 20.0), (0.0, 0.5),
-              (2.0, 200.0), (-1.2, 1.2), (-1.2, 1.2))
-    ANISO_MAX = 1.2  # |L| at most: a ratio of sigma_major / sigma_minor of e^1.2 = 3.3
+             "hot", "hot_x", "hot_y", "hot_width")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35)
+    # Powell works on these scales (a unit step is a sensible first move for each); the hot
+    # spot's numbers are fitted by ``fit_hot_spot``, not by Powell
+    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5, 0.03, 10.0)
     # hot, hot_x, hot_y, hot_width: a brighter spot (a darker one, or one centred outside the
     # design field or wider than 0.8 of it, is a smooth field: the quadratic's)
     HOT_BOUNDS = ((0.0, 1.0), (-1.0, 1.0), (-1.0, 1.0), (0.1, 0.8))
@@ -141,20 +106,11 @@ class PrintTemplate:
     def scatter(self, e: np.ndarray, x) -> np.ndarray:
         """The scattered dose of an exposure ``e``: the near Gaussian and the tail."""
         sigma, tail, tail_sigma, f = float(x[0]), float(x[8]), float(x[9]), self.f
-        b = core_blur(e, max(sigma, 0.3) / f, *(self.anisotropy(x)))
+        b = cv2.GaussianBlur(e, (0, 0), max(sigma, 0.3) / f)
         tail = min(max(tail, 0.0), 0.9)
         if tail > 0:
             b = (1 - tail) * b + tail * gaussian(e, max(tail_sigma, 1.0) / f)
         return b
-
-    def anisotropy(self, x) -> tuple[float, float]:
-        """(aniso_c, aniso_s), their length held to ``ANISO_MAX``; (0, 0) for numbers
-        recorded before the anisotropy (17 of them)."""
-        if len(x) < 19:
-            return 0.0, 0.0
-        c, s = float(x[17]), float(x[18])
-        L = float(np.hypot(c, s))
-        return (c, s) if L <= self.ANISO_MAX else (c * self.ANISO_MAX / L, s * self.ANISO_MAX / L)
 
     def cure(self, B: np.ndarray, x, dose=1.0, blur: float | None = None):
         """The imaged print T for the scattered dose B (``dose`` a number or a map).
@@ -238,62 +194,28 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((x * y).sum() / (np.sqrt((x * x).sum() * (y * y).sum()) + 1e-12))
 
 
-ANISO_GAIN = 1e-4  # mean NCC an elliptical core must gain over a round one (fit_template)
 TRIM = 3.0  # a print whose misfit beyond noise is this many times the median print's, and above MIN_TRIM, is left
 MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
 
 
-def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None) -> tuple[np.ndarray, float]:
+def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
 
     ``pairs``: (padded mask, image warped into padded design coordinates, the print's
     dose), on ``tmpl``'s grid. Powell, because the cure's kink makes the objective only
-    piecewise smooth and the evaluation is cheap at quarter resolution. Powell moves along
-    one direction at a time, and along the cure's and the microscope's numbers the
-    scattered dose stays what it was: it is kept for the last scattering numbers. ``pool``:
-    a map over the prints (OpenCV and the FFT release the GIL: threads run them at once).
+    piecewise smooth and the evaluation is cheap at quarter resolution.
     """
     from scipy.optimize import minimize
 
-    x0 = np.r_[np.asarray(x0, float), PrintTemplate.START[len(x0):]]  # numbers recorded before the last were added
-    step, free = np.asarray(PrintTemplate.STEP), list(PrintTemplate.FREE)  # the hot spot's numbers are held
-    halves = [list(range(len(pairs)))[i::2] for i in range(2)] if pool else [list(range(len(pairs)))]
-    kept, B = [None], [None] * len(pairs)
-
-    lo, hi = np.array(PrintTemplate.BOUNDS).T
-
-    def numbers(z):
-        x = x0.copy()
-        x[free] = np.clip(z * step, lo, hi)
-        x[17:19] = tmpl.anisotropy(x)  # held within its bound (beyond it the cost is flat, and Powell wanders)
-        return x
-
-    def part(x, idx, scatter):  # the NCCs of prints idx (a task per core: one a print costs more than it does)
-        if scatter:
-            for i in idx:
-                B[i] = tmpl.exposure(pairs[i][0], x)
-        return [ncc(pairs[i][1], tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
+    x0 = np.asarray(x0, float)
+    step = np.asarray(PrintTemplate.STEP)
+    k = len(step)  # the hot spot's numbers, if any, are held (``fit_hot_spot`` fits them)
 
     def cost(z):
-        x = numbers(z)
-        key = x[list(PrintTemplate.SCATTER)]
-        scatter = kept[0] is None or not np.array_equal(key, kept[0])
-        kept[0] = key
-        return -float(np.mean([v for vs in (pool or map)(lambda idx: part(x, idx, scatter), halves) for v in vs]))
+        return -mean_ncc(tmpl, pairs, np.r_[z * step, x0[k:]])
 
-    res = minimize(cost, np.clip(x0[free], lo, hi) / step, method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
-    x, fit = numbers(res.x), -float(res.fun)
-    if np.any(x[17:19] != 0):
-        # a round core unless the ellipse gains ANISO_GAIN (a ratio of about 1.1 and more does,
-        # 2.6e-3 at 1.67 in a random lab): the fit finds a ratio of 1.09 on
-        # prints of a round kernel (the NCC gains 1e-5: the axes trade against the tail and
-        # the field), whose per-direction edge offsets then spread twice as wide
-        round_ = np.r_[x[:17], 0.0, 0.0]
-        fit_round = -cost(round_[free] / step)
-        log.info("print template: anisotropy %.3f, %.3f gains mean NCC %.2g", x[17], x[18], fit - fit_round)
-        if fit - fit_round < ANISO_GAIN:
-            return round_, fit_round
-    return x, fit
+    res = minimize(cost, x0[:k] / step, method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
+    return np.r_[res.x * step, x0[k:]], -float(res.fun)
 
 
 def mean_ncc(tmpl: PrintTemplate, pairs: list, x) -> float:
@@ -452,8 +374,7 @@ class FieldFit:
 
     def numbers(self, theta):
         """The template numbers with the field (and hot spot) ``theta``."""
-        x = np.r_[self.x, PrintTemplate.START[len(self.x):]]
-        x[13:17] = PrintTemplate.START[13:17]
+        x = np.r_[self.x[:13], PrintTemplate.START[13:]]
         x[3:8] = theta[:5]
         if len(theta) > 5:
             x[13:17] = theta[5:9]
@@ -464,8 +385,7 @@ HOT_CENTRES = tuple((cx, cy) for cy in (-0.6, 0.0, 0.6) for cx in (-0.6, 0.0, 0.
 HOT_WIDTH = PrintTemplate.START[16]  # the search's starting width
 
 
-def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None,
-                 max_evals: int = 600) -> tuple[np.ndarray, float]:
+def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None) -> tuple[np.ndarray, float]:
     """A lamp hot spot in the batch's field, where its prints show one.
 
     The bump's centre cannot be searched at fixed template numbers: the quadratic field
@@ -478,7 +398,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     A bump that fits one half's noise, one print's odd cure or a misfit of another kind
     (seen: 0.0016 on the fitted prints, 0.0002 on the others, in a lab with no hot spot)
     does not carry over so. A bump taken is fitted on all prints and the other template
-    numbers refitted around it (``fit_template``, ``max_evals``); it is kept if the whole fit beats
+    numbers refitted around it (``fit_template``); it is kept if the whole fit beats
     ``fit`` by ``min_gain`` too. ``pool``: a map over the centres. Returns the numbers
     (always with the hot spot's four; ``hot`` zero where there is none) and their fit.
     """
@@ -505,7 +425,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     if theta[5] < 0.02 or gains[1] < min_gain or gains[1] < gains[0] / 3:
         return x, fit
     every = FieldFit(tmpl, pairs, x)
-    x1, f1 = fit_template(tmpl, pairs, every.numbers(every.fit(theta)[0]), max_evals)
+    x1, f1 = fit_template(tmpl, pairs, every.numbers(every.fit(theta)[0]))
     log.info("lamp hot spot %s: mean NCC %.5f, without %.5f: %s", np.round(x1[13:], 3), f1, fit,
              "kept" if f1 - fit >= min_gain else "not kept")
     return (x1, f1) if f1 - fit >= min_gain else (x, fit)
