@@ -20,7 +20,7 @@ from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
-from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, ncc, well_fitted
+from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +79,9 @@ class Settings:
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
+    template_min_prints: int = 5  # prints whose poses no rival contests, that the template is fitted on again (step
+    template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
+    template_rounds: int = 0  # ... those prints then refined with it and it fitted again there, this many times
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -653,23 +656,34 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     tshape = (design_px + 2 * MARGIN,) * 2
     fit_ids = [mid for mid in todo if starts[mid][1]][:: max(1, len(todo) // 12)][:12]
 
-    def pair(mid):
-        reg = cv2.warpAffine(smooth[mid], starts[mid][0][0], tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    def pair(mid, M):
+        reg = cv2.warpAffine(smooth[mid], M, tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         return quarter.padded(masks[mid]), cv2.resize(reg, quarter.shape[::-1], interpolation=cv2.INTER_AREA), 1.0
+
+    def fit_batch_template(poses: dict, x, max_evals: int = 600, hot_spot: bool = True):
+        """The template fitted on the prints of ``poses`` (id -> pose) from ``x``: its numbers,
+        its mean NCC, the (mask, image, dose) it was fitted on, and the prints it was fitted
+        on and left out (registration.yaml)."""
+        ids_ = list(poses)
+        pairs = list(pool.map(lambda mid: pair(mid, poses[mid]), ids_))
+        x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
+        kept = well_fitted(quarter, pairs, x)
+        if len(kept) < len(pairs):  # fitted again without the prints it cannot explain (a pose off)
+            pairs = kept
+            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
+        used = dict(fitted=[m for m, p in zip(ids_, pairs) if any(p is k for k in kept)],
+                    left_out=[m for m, p in zip(ids_, pairs) if not any(p is k for k in kept)])
+        if hot_spot:
+            x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals)  # a lamp hot
+            # spot, where the prints show one
+        log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
+        return x, fit, pairs, used
 
     x = np.array(PrintTemplate.START)
     template_prints = dict(fitted=list(fit_ids), left_out=[])  # registration.yaml: the prints the template was fitted on
+    # (and where it was fitted again at the chosen poses, ``first``: those of the first template)
     if fit_ids:
-        pairs = list(pool.map(pair, fit_ids))
-        x, fit = fit_template(quarter, pairs, x)
-        kept = well_fitted(quarter, pairs, x)
-        if len(kept) < len(pairs):  # fitted again without the prints it cannot explain (a first pose off)
-            template_prints = dict(fitted=[mid for mid, p in zip(fit_ids, pairs) if any(p is k for k in kept)],
-                                   left_out=[mid for mid, p in zip(fit_ids, pairs) if not any(p is k for k in kept)])
-            pairs = kept
-            x, fit = fit_template(quarter, pairs, x)
-        x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map)  # a lamp hot spot, where the prints show one
-        log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
+        x, _, _, template_prints = fit_batch_template({mid: starts[mid][0][0] for mid in fit_ids}, x)
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     def counted(mid) -> tuple:
         """The scales within which a pose counts (``choose_pose``): the searched range;
@@ -678,7 +692,54 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         lo, hi = scales[mid][0]
         return (lo, hi) if scale_prior(*scales[mid]) is None else (min(lo, hi / 1.1), max(hi, lo * 1.1))
 
-    choices = dict(zip(todo, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], starts[mid][0], x, s, design_px, counted(mid)), todo)))
+    def chosen(ids_, x, start=None):  # ``start``: id -> the poses to start from (default: the first poses)
+        start = start or {}
+        return dict(zip(ids_, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], start.get(mid, starts[mid][0]), x, s,
+                                                           design_px, counted(mid)), ids_)))
+
+    # 5a. the template again. A first pose against the blurred mask is off by the print's
+    # difference from its mask (features that shrank, or grew more along one direction; a
+    # line grating by a pitch or more, a partial print), and a template fitted at poses
+    # that far off comes out blurred (seen: sigma 22 px where it is 8 at the true poses),
+    # which biases every pose chosen with it (1.5 to 2 px). So once every print's pose is
+    # chosen, the template is fitted again at the poses that no rival contests, and where
+    # it fits those prints clearly better than the first did, it is the batch's: those
+    # prints are refined with it, and the others chosen again with it, from their first
+    # choice and its rival (the moves under which a print maps onto itself are tried
+    # again from there; the first poses that lost to them are not). Choosing every
+    # print again only where the refined ones moved 0.3 px or more saved no time on 8
+    # labs (they all moved) and left one more print silently wrong.
+    def placed(ch) -> bool:  # a pose the template may be fitted at: no rival close, converged (its spread, which a
+        return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence  # poor template inflates, aside)
+
+    choices = chosen(todo, x)
+    sure = [mid for mid in todo if placed(choices[mid])]
+    sure = sure[:: max(1, len(sure) // 12)][:12]
+    if len(sure) >= s.template_min_prints:
+        x0 = np.r_[x[:13], PrintTemplate.START[13:17], x[17:]]  # the hot spot searched for again
+        x2, fit2, pairs2, used2 = fit_batch_template({mid: choices[mid].fit.M for mid in sure}, x0, 300, hot_spot=False)
+        before = mean_ncc(quarter, pairs2, x)
+        log.info("print template at the poses of %d prints: mean NCC %.4f, the first template's %.4f", len(sure), fit2, before)
+        if fit2 - before > s.template_refit_gain:
+            full_t = PrintTemplate(design_px, MARGIN)
+
+            def refined(mid, x):  # from the pose alone: the print's dose and edge offsets under the first template are
+                # not its numbers under this one (a half-dose print's dose 0.65 cured nothing under it, and its pose walked
+                # 23 px off); from the prior's, every print converged
+                B = full_t.exposure(full_t.padded(masks[mid]), x)
+                return replace(choices[mid], fit=refine(smooth[mid], choices[mid].fit.M, full_t, B, x, s.mode, iters=12, tol=0.01))
+
+            bar.total += len(choices) + s.template_rounds * len(sure)
+            for _ in range(s.template_rounds):  # those prints refined with it, and it fitted again there
+                choices.update(zip(sure, pmap(lambda mid: refined(mid, x2), sure)))
+                x2, fit2, pairs2, used2 = fit_batch_template({mid: choices[mid].fit.M for mid in sure}, x2, 300, hot_spot=False)
+            x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300)
+            log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit2)
+            template_prints = dict(used2, first=template_prints)
+            again = [mid for mid in choices if mid not in sure]
+            choices.update(zip(sure, pmap(lambda mid: refined(mid, x), sure)))
+            choices.update(chosen(again, x, {mid: [ch.fit.M] + ([ch.rival] if ch.rival is not None else [])
+                                             for mid, ch in choices.items() if mid in again}))
     # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
