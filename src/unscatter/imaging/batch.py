@@ -718,6 +718,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def placed(ch) -> bool:  # a pose the template may be fitted at: no rival close, converged (its spread, which a
         return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence  # poor template inflates, aside)
 
+    full = PrintTemplate(design_px, MARGIN)  # the full-resolution template, steps 5a to 6
     choices = chosen(todo, x)
     sure = [mid for mid in todo if placed(choices[mid])]
     sure = sure[:: max(1, len(sure) // 12)][:12]
@@ -727,13 +728,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         before = mean_ncc(quarter, pairs2, x)
         log.info("print template at the poses of %d prints: mean NCC %.4f, the first template's %.4f", len(sure), fit2, before)
         if fit2 - before > s.template_refit_gain:
-            full_t = PrintTemplate(design_px, MARGIN)
-
             def refined(mid, x):  # from the pose alone: the print's dose and edge offsets under the first template are
                 # not its numbers under this one (a half-dose print's dose 0.65 cured nothing under it, and its pose walked
                 # 23 px off); from the prior's, every print converged
-                B = full_t.exposure(full_t.padded(masks[mid]), x)
-                return replace(choices[mid], fit=refine(smooth[mid], choices[mid].fit.M, full_t, B, x, s.mode, iters=12, tol=0.01))
+                B = full.exposure(full.padded(masks[mid]), x)
+                return replace(choices[mid], fit=refine(smooth[mid], choices[mid].fit.M, full, B, x, s.mode, iters=12, tol=0.01))
 
             bar.total += len(choices)
             x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300)
@@ -747,7 +746,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
-    full = PrintTemplate(design_px, MARGIN)
     exposed = {}  # id -> the mask's scattered dose on the full grid, made once for steps 5b to 6
 
     def exposure_of(mid) -> np.ndarray:

@@ -276,10 +276,9 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     if not anisotropy or not np.any(x[17:19] != 0):
         return x, fit
     round_ = np.r_[x[:17], 0.0, 0.0]
-    fit_round = mean_ncc(tmpl, pairs, round_)
     some, rest = pairs[::2], pairs[1::2]
     if len(rest) < 3:
-        return round_, fit_round
+        return round_, mean_ncc(tmpl, pairs, round_)
     round_free = [i for i in free if i < 17]
     x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool)
     x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool)
@@ -287,7 +286,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     kept = gains[1] >= ANISO_GAIN
     log.info("print template: anisotropy %.3f, %.3f (ratio %.2f) gains mean NCC %.2g on the prints it was fitted to, "
              "%.2g on the others: %s", x[17], x[18], np.exp(np.hypot(x[17], x[18])), *gains, "kept" if kept else "round")
-    return (x, fit) if kept else (round_, fit_round)
+    return (x, fit) if kept else (round_, mean_ncc(tmpl, pairs, round_))
 
 
 def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool) -> tuple[np.ndarray, float]:
@@ -506,8 +505,8 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     A bump that fits one half's noise, one print's odd cure or a misfit of another kind
     (seen: 0.0016 on the fitted prints, 0.0002 on the others, in a lab with no hot spot)
     does not carry over so. A bump taken is fitted on all prints and the other template
-    numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held); it is kept if the whole fit beats
-    ``fit`` by ``min_gain`` too. ``pool``: a map over the centres. Returns the numbers
+    numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held);
+    it is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``pool``: a map over the centres. Returns the numbers
     (always with the hot spot's four; ``hot`` zero where there is none) and their fit.
     """
     x = np.asarray(x, float)
