@@ -373,6 +373,34 @@ def test_a_print_that_is_one_feature_has_its_scale_from_its_size_only():
     assert size_spread(T_row, "similarity") < 0.4
 
 
+def test_a_feature_that_barely_or_does_not_print_fixes_no_scale():
+    """A block and a thin line beside it: where the template predicts the line's peak
+    well above the level, the two features' places fix the scale; where the line barely
+    crosses it (specks along a ridge, as a thin line at the edge of curing does) or where
+    the image does not show the line, the block's size alone sets it, as for one block."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import size_spread
+
+    def blurred(m):
+        return np.pad(cv2_blur(m.astype(np.float32), 2.0), MARGIN)
+
+    block = np.zeros((512, 512), np.float32)
+    block[300:420, 100:420] = 1.0
+    line = np.zeros((512, 512), np.float32)
+    line[120:126, 60:460] = 1.0
+    T_block = blurred(block)
+    alone = size_spread(T_block, "similarity", 0.2)
+    peak = float(T_block.max())
+    clear = T_block + blurred(line) * (0.9 * peak / float(blurred(line).max()))
+    assert size_spread(clear, "similarity", 0.2) < 0.5 * alone  # two features far apart: their places fix the scale
+    rng = np.random.default_rng(0)
+    ridge = blurred(line) / float(blurred(line).max()) * (0.5 * peak) * (1.0 + 0.04 * rng.standard_normal(T_block.shape))
+    marginal = T_block + np.where(blurred(line) > 0.5 * float(blurred(line).max()), ridge, 0.0)
+    assert size_spread(marginal, "similarity", 0.2) == pytest.approx(alone, rel=0.05)
+    shown = np.where(np.isfinite(T_block), T_block, np.nan)  # the image shows the block, not the line
+    assert size_spread(clear, "similarity", 0.2, image=shown) == pytest.approx(alone, rel=0.05)
+    assert size_spread(clear, "similarity", 0.2, image=clear) < 0.5 * alone
+
 def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():
     """A Siemens star is one feature: where its spoke tips lie against its spoke sides is
     what the template predicts worst, so without a bound on its size its scale is free;
@@ -616,17 +644,18 @@ def test_stated_scales_are_measured_by_the_prints_that_fix_their_scale():
     s = Settings()
     priors = {k: (np.log(1.1), 0.001) for k in "abcdefgh"} | {"z": None}
     few = {k: np.log(1.1) + d for k, d in zip("abc", (0.0005, -0.001, 0.0015))}
-    used, note = stated_scales(priors, few, s)  # too few to measure it, and they agree: used as stated
-    assert used == {k: priors[k] for k in "abcdefgh"} and note == ""
-    used, note = stated_scales(priors, {}, s)  # nothing to check it against: used as stated
-    assert set(used) == set("abcdefgh")
-    used, note = stated_scales(priors, {k: np.log(1.1) + 0.02 for k in "abc"}, s)  # 2 % off a size stated within 0.2 %
+    used, note, shift = stated_scales(priors, few, s)  # too few to measure it, and they agree: used as stated
+    assert used == {k: priors[k] for k in "abcdefgh"} and note == "" and shift == 0
+    used, note, shift = stated_scales(priors, {}, s)  # nothing to check it against: used as stated
+    assert set(used) == set("abcdefgh") and shift == 0
+    used, note, shift = stated_scales(priors, {k: np.log(1.1) + 0.02 for k in "abc"}, s)  # 2 % off a size stated within 0.2 %
     assert used == {} and "+2.0" in note and "not used" in note
+    assert shift == pytest.approx(0.02)  # the range check of every print allows the offset the prints measure
     # enough prints to measure it: a stale calibration 2 % off is corrected, and the
     # spread is the prints' own (at least min_scale_sd)
     many = {k: np.log(1.1) + 0.02 + d for k, d in zip("abcdefg", (0.0, 0.003, -0.003, 0.001, -0.001, 0.002, -0.002))}
-    used, note = stated_scales(priors, many, s)
-    assert note == "" and used["h"][0] == pytest.approx(np.log(1.1) + 0.02)
+    used, note, shift = stated_scales(priors, many, s)
+    assert note == "" and shift == 0 and used["h"][0] == pytest.approx(np.log(1.1) + 0.02)
     assert used["h"][1] == pytest.approx(1.4826 * 0.002) and used["h"][1] >= s.min_scale_sd
 
 

@@ -64,6 +64,9 @@ class Settings:
     min_rotation_spread: float = 0.5  # ... the spread (deg) at least this (batch_rotation)
     max_size_sd: float = 1.5  # design px: a pose whose spread from its features' sizes is larger fails (a bound on a
     # systematic error, not a noise level: at 1.5 px the print may be as far off as 'silently wrong' means)
+    hold_size_sd: float = 0.75  # design px: a print whose spread from its features' sizes is larger is held to its
+    # stated camera pixel size where that is known more closely than the batch's one magnification (half max_size_sd:
+    # the size spread is a 1-sd estimate that has been 1.5 to 2.4 times off on prints one feature)
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
@@ -353,27 +356,33 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
     may be off by. With fewer, the stated sizes are used as stated, within their
     tolerance (two sd), unless those few contradict them by more than the tolerance in
     the median: then none is used, and the prints that would need one fail as
-    undetermined rather than be held to a scale the batch contradicts."""
+    undetermined rather than be held to a scale the batch contradicts.
+
+    Returns (id -> (log scale, sd) of the stated scales used, a note for the prints that
+    would need one, the log shift that the check of every print's scale against its
+    stated range allows: 0, or where the prints contradict the stated size, their median
+    offset, so that a print as far off the stale calibration as the batch's own placed
+    prints is not failed for it; the range is widened toward it, not moved)."""
     priors = {k: v for k, v in priors.items() if v is not None}
     d = np.array([placed[k] - priors[k][0] for k in placed if k in priors])
     if not priors:
-        return {}, ""
+        return {}, "", 0.0
     off = float(np.median(d)) if len(d) else 0.0
     if len(d) >= s.scale_min_prints:
         spread = 1.4826 * float(np.median(np.abs(d - off)))
         sd = max(s.min_scale_sd, spread)
         log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (spread %.2f %%): "
                  "the stated scales shifted by that, each known within %.2f %%", len(d), 100 * off, 100 * spread, 100 * sd)
-        return {k: (v[0] + off, sd) for k, v in priors.items()}, ""
+        return {k: (v[0] + off, sd) for k, v in priors.items()}, "", 0.0
     tol = float(np.median([2 * v[1] for v in priors.values()]))
     if abs(off) <= tol:
         log.info("stated camera pixel size: scale known within %.2f %% (its tolerance)%s", 100 * tol,
                  f", checked against {len(d)} prints whose features fix their scale" if len(d) else ", nothing to check it against")
-        return priors, ""
+        return priors, "", 0.0
     log.warning("the stated camera pixel size is contradicted by %d prints whose features fix their scale: they are %+.2f %% "
                 "off it, more than its tolerance; it is not used", len(d), 100 * off)
     return {}, (f"; the stated camera pixel size, which would fix it, is not used: the prints whose features fix their "
-                f"scale are {100 * off:+.2f} % off it, more than its tolerance")
+                f"scale are {100 * off:+.2f} % off it, more than its tolerance"), off
 
 
 def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s: Settings, source: Path) -> tuple[float, float]:
@@ -798,10 +807,17 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # 5c. how far a print's pose rests on the size of its features, and how well this
     # batch's template predicts sizes: the edge offsets fitted on the prints whose features'
     # places fix their pose (``size_error``)
+    def imaged(mid, f, img=None):
+        """The image on the template's grid at the pose of ``f``, in the template's units
+        (``size_spread``'s ``image``)."""
+        img = warp_to_design(smooth[mid], f.M, grid) if img is None else img
+        return (img - f.offset) / f.gain if f.gain > 0 else None
+
     def free_spread(mid):
         f = choices[mid].fit
         T = predicted_print(full, exposure_of(mid), x, f)
-        return T, size_spread(T, s.mode), edge_misfit(warp_to_design(smooth[mid], f.M, grid), T, f)
+        img = warp_to_design(smooth[mid], f.M, grid)
+        return T, size_spread(T, s.mode, image=imaged(mid, f, img)), edge_misfit(img, T, f)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
     placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
@@ -822,7 +838,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                  "every print held to it within %.2f %%", np.exp(one_scale[0]), 100 * one_scale[1], len(placed),
                  100 * held_scale[1])
 
-    stated, stated_note = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo},
+    stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo},
                                         {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}, s)
 
     def no_size_note(mid) -> str:
@@ -874,17 +890,18 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
-            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None, place_sd)
+            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None, place_sd,
+                                    imaged(mid, f))
             return f
 
         if edges or scaled:
             f = fit(held_scale if scaled else None)
         else:
             f = ch.fit
-            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd)
+            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f))
         p = stated.get(mid)
         if (p is not None and (held_scale is None or p[1] < held_scale[1])
-                and f.pose_sd <= 1.5 * s.max_pose_sd and f.size_sd > s.max_size_sd):
+                and f.pose_sd <= 1.5 * s.max_pose_sd and f.size_sd > s.hold_size_sd):
             g = fit(p)
             if max(g.pose_sd / s.max_pose_sd, g.size_sd / s.max_size_sd) < max(f.pose_sd / s.max_pose_sd, f.size_sd / s.max_size_sd):
                 log.info("%s: held to its stated camera pixel size: pose spread %.2f -> %.2f px, size spread %.2f -> %.2f px",
@@ -916,7 +933,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # the pose and its spread are the marks'; gain, offset and nuisance numbers stay the
         # whole print's (the marks' gain is that of three squares under an uneven stain)
         g = replace(f, M=g.M, pose_sd=g.pose_sd, converged=g.converged, iterations=g.iterations)
-        g.size_sd = size_spread(predicted_print(full, B_marks, x, g), s.mode, edge_sd, edge_sd=place_sd)
+        g.size_sd = size_spread(predicted_print(full, B_marks, x, g), s.mode, edge_sd, edge_sd=place_sd, image=imaged(mid, g))
         log.info("%s: posed on its registration marks, %.2f px from the pose of the whole print (pose spread %.2f -> "
                  "%.2f px)", mid, d, f.pose_sd, g.pose_sd)
         return g
@@ -998,8 +1015,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             if abs(log_scale(ch.fit.M) - c) > s.scale_sigmas * sd:
                 reasons.append(f"scale {pose['scale']:.4f} off its stated {np.exp(c):.4f} ({scales[mid][1]}; as the batch's "
                                f"prints measure it) by more than {s.scale_sigmas:g} times its spread ({100 * sd:.2f} %)")
-        elif not lo <= pose["scale"] <= hi:
-            reasons.append(f"scale {pose['scale']:.4f} outside {lo:.4f}..{hi:.4f} ({scales[mid][1]})")
+        elif not lo * min(1.0, np.exp(stale)) <= pose["scale"] <= hi * max(1.0, np.exp(stale)):
+            lo, hi = lo * min(1.0, np.exp(stale)), hi * max(1.0, np.exp(stale))
+            reasons.append(f"scale {pose['scale']:.4f} outside {lo:.4f}..{hi:.4f} ({scales[mid][1]}"
+                           + (f", widened by the {100 * stale:+.2f} % that the batch's prints measure it off" if stale else "")
+                           + ")")
         if score < s.min_score:
             reasons.append(f"registration score {score:.2f} below {s.min_score}")
         if off_rotation(ch.fit.M):
