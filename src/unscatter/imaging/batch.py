@@ -64,9 +64,9 @@ class Settings:
     min_rotation_spread: float = 0.5  # ... the spread (deg) at least this (batch_rotation)
     max_size_sd: float = 1.5  # design px: a pose whose spread from its features' sizes is larger fails (a bound on a
     # systematic error, not a noise level: at 1.5 px the print may be as far off as 'silently wrong' means)
-    hold_size_sd: float = 0.75  # design px: a print whose spread from its features' sizes is larger is held to its
-    # stated camera pixel size where that is known more closely than the batch's one magnification (half max_size_sd:
-    # the size spread is a 1-sd estimate that has been 1.5 to 2.4 times off on prints one feature)
+    hold_size_sd: float = 0.75  # design px: a print whose spread from its features' sizes is larger, and whose
+    # scale agrees with its stated camera pixel size, is held to that where it is known more closely than the batch's
+    # one magnification (half max_size_sd: the size spread is a 1-sd estimate, 1.5 to 2.4 times off on some prints)
     size_sd: float = 0.5  # design px: how far feature sizes may be off the template's, without a batch to measure it
     min_size_sd: float = 0.1  # ... and at least this with one (size_error)
     size_min_prints: int = 4  # prints whose pose their features' places fix, needed to measure it
@@ -869,12 +869,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
         A stated camera pixel size (``stated_scales``) holds the scale in the same way,
         but only for a print whose scale trades against its features' size (its size
-        spread over the limit) while its data nearly fix the rest of its pose (its pose
-        spread within 1.5 times the limit, which the scale's trade inflates for one
-        block; a grating loose along its lines stays failed), and only
-        where it is known more closely than the batch's one magnification; a print that
-        passes without it is not touched. It counts in the pose's spread, so it lets a
-        print pass only when it is tight enough (about 0.15 % for a print of 512 px)."""
+        spread over ``hold_size_sd``, and where it is below the limit, its own scale
+        within ``scale_sigmas`` spreads of the stated one) while its data nearly fix the
+        rest of its pose (its pose spread within 1.5 times the limit, which the scale's
+        trade inflates for one block; a grating loose along its lines stays failed), and
+        only where it is known more closely than the batch's one magnification, and only
+        where the held fit's spreads are the smaller. It counts in the pose's spread, so it
+        lets a print pass only when it is tight enough (about 0.15 % for a print of 512 px)."""
         ch, T = choices[mid], spreads[mid][0]
         merged = merged_features(T, full.padded(masks[mid]))
         sd = None if merged else edge_sd
@@ -900,8 +901,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             f = ch.fit
             f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f))
         p = stated.get(mid)
-        if (p is not None and (held_scale is None or p[1] < held_scale[1])
-                and f.pose_sd <= 1.5 * s.max_pose_sd and f.size_sd > s.hold_size_sd):
+        # between hold_size_sd and max_size_sd the print's own scale means something: held
+        # only where it agrees with the stated one (a print whose scale is off it is
+        # evidence of a wrong pose, which holding would hide: a grey ramp of seed
+        # 1767693049 passed 2.6 px off, its free scale 0.4 % off, 4.1 times the spread)
+        if (p is not None and (held_scale is None or p[1] < held_scale[1]) and f.pose_sd <= 1.5 * s.max_pose_sd
+                and (f.size_sd > s.max_size_sd
+                     or (f.size_sd > s.hold_size_sd and abs(log_scale(f.M) - p[0]) <= s.scale_sigmas * p[1]))):
             g = fit(p)
             if max(g.pose_sd / s.max_pose_sd, g.size_sd / s.max_size_sd) < max(f.pose_sd / s.max_pose_sd, f.size_sd / s.max_size_sd):
                 log.info("%s: held to its stated camera pixel size: pose spread %.2f -> %.2f px, size spread %.2f -> %.2f px",
