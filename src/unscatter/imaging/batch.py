@@ -1021,11 +1021,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             if abs(log_scale(ch.fit.M) - c) > s.scale_sigmas * sd:
                 reasons.append(f"scale {pose['scale']:.4f} off its stated {np.exp(c):.4f} ({scales[mid][1]}; as the batch's "
                                f"prints measure it) by more than {s.scale_sigmas:g} times its spread ({100 * sd:.2f} %)")
-        elif not lo * min(1.0, np.exp(stale)) <= pose["scale"] <= hi * max(1.0, np.exp(stale)):
+        else:  # widened toward the offset of a stated size that the batch's prints contradict (stated_scales)
             lo, hi = lo * min(1.0, np.exp(stale)), hi * max(1.0, np.exp(stale))
-            reasons.append(f"scale {pose['scale']:.4f} outside {lo:.4f}..{hi:.4f} ({scales[mid][1]}"
-                           + (f", widened by the {100 * stale:+.2f} % that the batch's prints measure it off" if stale else "")
-                           + ")")
+            if not lo <= pose["scale"] <= hi:
+                reasons.append(f"scale {pose['scale']:.4f} outside {lo:.4f}..{hi:.4f} ({scales[mid][1]}"
+                               + (f", widened by the {100 * stale:+.2f} % that the batch's prints measure it off" if stale else "")
+                               + ")")
         if score < s.min_score:
             reasons.append(f"registration score {score:.2f} below {s.min_score}")
         if off_rotation(ch.fit.M):

@@ -633,15 +633,15 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     # boundary pixels just outside the print belong to the nearest feature
     _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
     k = lab[iy[ys, xs], ix[ys, xs]]
-    idx = np.arange(1, count + 1)
-    good = np.asarray(ndimage.maximum(T, lab, idx)) >= MARGINAL_PEAK * lvl
+    labels = np.arange(1, count + 1)
+    good = np.asarray(ndimage.maximum(T, lab, labels)) >= MARGINAL_PEAK * lvl  # features that surely print
     if image is not None:
         with np.errstate(invalid="ignore"):
-            good &= np.asarray(ndimage.mean(image >= lvl, lab, idx)) >= SEEN_SHARE
+            good &= np.asarray(ndimage.mean(image >= lvl, lab, labels)) >= SEEN_SHARE
     keep = np.concatenate([[False], good])[k]
     if keep.sum() < 10:
         return float("inf")
-    ys, xs, nx, ny, X, Y, P, k = ys[keep], xs[keep], nx[keep], ny[keep], X[keep], Y[keep], P[keep], k[keep]
+    nx, ny, X, Y, P, k = nx[keep], ny[keep], X[keep], Y[keep], P[keep], k[keep]
     c2, s2 = nx * nx - ny * ny, 2 * nx * ny
     Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
     v = edge_sd**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
