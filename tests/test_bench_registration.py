@@ -91,20 +91,6 @@ def test_a_near_threshold_print_whose_fit_cures_nothing_is_not_ok(tmp_path):
 
 
 
-def test_a_print_whose_template_barely_crosses_the_threshold_is_not_ok(tmp_path):
-    """Lab 7 of the registration benchmark's seed 434016831 (5.4 um of erosion after the
-    wash, no stated pixel size): a fine cut-off grating of which 0.35 % of the field cured.
-    Its polymer hovers at the threshold, and what crosses it is a pattern of patches over
-    9 % of the field (IoU 0.04 against the lab's print, at the true pose as well); its
-    pose, fitted to them, was 1.96 px off, and it was `ok`. The batch's template puts its
-    polymer at 112 % of the threshold at most: no feature surely prints (below
-    ``pose.MARGINAL_PEAK``), so it fails as near the threshold."""
-    bench = _bench()
-    _, rows = bench.run_lab(7, 434016831, 32, tmp_path)
-    row = next(r for r in rows if r["id"] == "grating_cutoff_005")
-    assert row["truth_solid"] < 0.005 and row["status"] == "failed" and "near the threshold" in row["reason"], row
-
-
 @pytest.mark.xfail(strict=False, reason="Since the template holds anisotropic scatter and is fitted again at the chosen "
                    "poses (2026-11-26), this lab's partial_030 (a grey ramp whose far end does not cure: its place across "
                    "the ramp rests on one mask edge) is ok 1.59 px off. Left open in #10: over seeds 3351926238 and "

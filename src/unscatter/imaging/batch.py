@@ -19,8 +19,7 @@ from ..io import InputError, open_batch, output_dir, read_mask, write_png, write
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
-                   merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD,
-                   MARGINAL_PEAK)
+                   merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
@@ -1066,13 +1065,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"near the threshold: at this pose and dose the batch's template puts its polymer at "
                            f"{100 * peak / thr:.0f} % of the threshold at most, so the "
                            f"{int(printed.sum())} px above it are noise or a cure the template does not predict")
-        elif printed.any() and peak < MARGINAL_PEAK * thr:
-            # no feature surely prints (``size_spread``'s MARGINAL_PEAK): which of the polymer
-            # crosses the threshold is set by the cells' noise, the stain and how well the
-            # template holds the cure near the threshold, not by the mask
-            reasons.append(f"near the threshold: at this pose and dose the batch's template puts its polymer at "
-                           f"{100 * peak / thr:.0f} % of the threshold at most (below {100 * MARGINAL_PEAK:.0f} %), so "
-                           f"which of it crosses the threshold is set by noise and stain, not by the mask")
         row["solid_fraction"] = round(float(printed.mean()), 5)
         row["misfit"] = misfit_px(printed, predicted, thr)
         write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
