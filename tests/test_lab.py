@@ -257,3 +257,20 @@ def test_new_microscope_effects_do_what_they_say():
     spread = lambda img: blocks(img).std() / blocks(img).mean()  # noqa: E731
     assert spread(_image(bright, rho)) < 0.01 and spread(_image(st, rho)) > 0.05
     assert abs(_image(st).mean() / _image(bright).mean() - 1) < 0.01
+
+
+def test_an_8bit_labs_declared_offset_is_what_its_dark_frame_reads():
+    """An 8-bit export keeps the top byte of the camera's 16-bit value, which drops the
+    rest: its dark frame reads about half a level below offset / 256. The lab declares
+    what a lab measuring a dark frame of its stored images would (``run.dark_level``), not
+    offset / 256, which left the background of a dim 8-bit image half a level low."""
+    from unscatter.lab.run import dark_level
+
+    for offset, read_noise in ((647.9, 7.5), (300.0, 3.0), (90.0, 1.2)):
+        mic = dict(load_config()["microscope"], image_size=[256, 256], photons=0.0, offset_adu=offset,
+                   read_noise_e=read_noise, adu_per_e=51.8, format="png8")
+        dark = (_image(mic).astype(np.uint16) >> 8).mean()  # the stored 8-bit dark frame
+        assert abs(dark_level(mic) - dark) < 0.02, (offset, dark_level(mic), dark)
+        assert dark_level(dict(mic, format="tif16")) == offset
+    lab7 = dict(mic, offset_adu=647.9, read_noise_e=7.5)  # lab 7 of the registration benchmark's seed 434016831
+    assert abs(dark_level(lab7) - 647.9 / 256) > 0.4  # not what was declared before (offset / 256)
