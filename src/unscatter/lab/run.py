@@ -36,7 +36,7 @@ def dark_level(mic: dict, samples: int = 200_000) -> float:
     a 16-bit offset); an 8-bit export keeps the top byte (``img >> 8``), which drops the
     rest, so its dark frame reads about half a level below offset / 256 where the read
     noise dithers it (less where it does not). Declaring offset / 256 left the
-    background of a dim 8-bit image half a level low: its polymer read 10 to 38 % too
+    background of a dim 8-bit image half a level low: its polymer read up to 38 % too
     bright in units of it (lab 7 of the registration benchmark's seed 434016831), which
     moved its prints' threshold. A fixed random stream, apart from the lab's."""
     if mic.get("format", "tif16") != "png8":
