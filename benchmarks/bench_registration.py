@@ -246,6 +246,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
     L += qc_lines(rows)
     L += metadata_lines(labs, rows)
+    L += offset_lines(labs, rows)
     L += tail_lines(labs, rows)
     L += ["", f"silently wrong ({len(silent)}): ok with pose error > {SILENT_POSE_PX} px, or empty with truth solid > {SILENT_EMPTY_SOLID}"]
     for r in sorted(silent, key=lambda r: -r.get("rms_px", 0)):
@@ -289,6 +290,29 @@ def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:
             parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
                          f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
     return ["  by the camera pixel size the lab states: " + "; ".join(parts)]
+
+
+def offset_kind(over: dict) -> str:
+    """How a drawn lab states its camera's dark offset (``lab.random``): declared with
+    16-bit or 8-bit images, or not declared (the registration then takes 0)."""
+    m = over["microscope"]
+    if not m.get("declare_offset", True):
+        return "undeclared"
+    return f"declared, {m.get('format', 'tif16')}"
+
+
+def offset_lines(labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures and silent errors by how the lab states its camera offset: an offset the
+    registration does not subtract makes polymer read brighter in a dimmer image, in
+    units of its background (README, "Camera offsets")."""
+    kind = {lab["index"]: offset_kind(lab["overrides"]) for lab in labs}
+    parts = []
+    for k in ("declared, tif16", "declared, png8", "undeclared"):
+        rr = [r for r in rows if kind[r["lab"]] == k]
+        if rr:
+            parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
+                         f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
+    return ["  by the camera offset the lab states: " + "; ".join(parts)]
 
 
 def tail_lines(labs: list[dict], rows: list[dict]) -> list[str]:

@@ -20,6 +20,19 @@ def _bench():
     return mod
 
 
+def test_the_summary_splits_labs_by_how_they_state_their_camera_offset():
+    bench = _bench()
+    labs = [dict(index=0, overrides={"microscope": {"declare_offset": True, "format": "tif16"}}),
+            dict(index=1, overrides={"microscope": {"declare_offset": True, "format": "png8"}}),
+            dict(index=2, overrides={"microscope": {"declare_offset": False, "format": "png8"}})]
+    rows = [dict(lab=0, status="ok", silently_wrong=0), dict(lab=1, status="failed", silently_wrong=0),
+            dict(lab=2, status="ok", silently_wrong=1), dict(lab=2, status="failed", silently_wrong=0)]
+    line = bench.offset_lines(labs, rows)[0]
+    assert "declared, tif16 (1 labs) 0 failed, 0 silently wrong of 1" in line
+    assert "declared, png8 (1 labs) 1 failed, 0 silently wrong of 1" in line
+    assert "undeclared (1 labs) 1 failed, 1 silently wrong of 2" in line
+
+
 def test_set_changes_a_dotted_key_with_a_yaml_value_and_names_what_is_wrong():
     bench = _bench()
     cfg = {"printer": {"kernel": {"heavy_tail": {"fraction": 0.3, "length_um": 60.0}}, "illumination": {"hotspot": {"x0": 0}}}}
