@@ -280,16 +280,22 @@ def stated_kind(over: dict) -> str:
     return "calibrated" if abs(md["error"]) <= md["tolerance"] else "stale"
 
 
-def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:
-    """Failures and silent errors by how the lab states its camera pixel size."""
-    kind = {lab["index"]: stated_kind(lab["overrides"]) for lab in labs}
+def _by_kind(title: str, kind_of, kinds: tuple, labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures and silent errors of the prints grouped by a kind of their lab
+    (``kind_of``: the lab's overrides -> one of ``kinds``)."""
+    kind = {lab["index"]: kind_of(lab["overrides"]) for lab in labs}
     parts = []
-    for k in ("none", "nominal", "calibrated", "stale"):
+    for k in kinds:
         rr = [r for r in rows if kind[r["lab"]] == k]
         if rr:
             parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
                          f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
-    return ["  by the camera pixel size the lab states: " + "; ".join(parts)]
+    return [f"  by {title}: " + "; ".join(parts)]
+
+
+def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures and silent errors by how the lab states its camera pixel size."""
+    return _by_kind("the camera pixel size the lab states", stated_kind, ("none", "nominal", "calibrated", "stale"), labs, rows)
 
 
 def offset_kind(over: dict) -> str:
@@ -305,14 +311,8 @@ def offset_lines(labs: list[dict], rows: list[dict]) -> list[str]:
     """Failures and silent errors by how the lab states its camera offset: an offset the
     registration does not subtract makes polymer read brighter in a dimmer image, in
     units of its background (README, "Camera offsets")."""
-    kind = {lab["index"]: offset_kind(lab["overrides"]) for lab in labs}
-    parts = []
-    for k in ("declared, tif16", "declared, png8", "undeclared"):
-        rr = [r for r in rows if kind[r["lab"]] == k]
-        if rr:
-            parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
-                         f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
-    return ["  by the camera offset the lab states: " + "; ".join(parts)]
+    return _by_kind("the camera offset the lab states", offset_kind, ("declared, tif16", "declared, png8", "undeclared"),
+                    labs, rows)
 
 
 def tail_lines(labs: list[dict], rows: list[dict]) -> list[str]:

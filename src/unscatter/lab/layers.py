@@ -28,7 +28,7 @@ import numpy as np
 from scipy import fft, ndimage
 from scipy.special import ndtr
 
-from .microscope import draw_pose, similarity
+from .microscope import digitize, draw_pose, similarity
 from .printer import Printer
 
 LIGHT_CUTOFF = 1e-4  # deeper layers than where the transmission falls below this get no light
@@ -131,7 +131,7 @@ def image_stack(density_padded: np.ndarray, pad: int, design_px: int, pixel_size
         lamp = max(0.2, 1.0 + float(conf["slice_jitter"]) * rng.standard_normal())
         e = mic["photons"] * lamp * v * (bright * warped + mic["background"])
         counts = rng.poisson(np.maximum(e, 0)) + rng.normal(0, mic["read_noise_e"], size=(H, W))
-        out[k] = np.clip(np.round(counts * mic["adu_per_e"] + mic["offset_adu"]), 0, 65535).astype(np.uint16)
+        out[k] = digitize(counts, mic)
     return out, dict(pose, z0_um=z0, z_offset_um=z_off, slices=nz, vignetting=vig), M
 
 

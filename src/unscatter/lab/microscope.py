@@ -76,6 +76,18 @@ def _background(level: float, tilt: float, shape, rng: np.random.Generator):
     return level * (1.0 + tilt * t)
 
 
+def digitize(counts: np.ndarray, cfg: dict) -> np.ndarray:
+    """The camera's 16-bit values of ``counts`` (electrons plus read noise): gain, dark
+    offset, rounding and the ADC's range."""
+    return np.clip(np.round(counts * cfg["adu_per_e"] + cfg["offset_adu"]), 0, 65535).astype(np.uint16)
+
+
+def stored(img: np.ndarray, cfg: dict) -> np.ndarray:
+    """The image as the lab stores it: 16-bit, or an 8-bit export (``format: png8``) that
+    keeps the top byte and drops the rest."""
+    return (img >> 8).astype(np.uint8) if cfg.get("format", "tif16") == "png8" else img
+
+
 def image_print(density_padded: np.ndarray, pad: int, design_px: int, cfg: dict, rng: np.random.Generator, pose=None):
     """Image a print. Returns (uint16 image, pose, 2x3 design->image matrix)."""
     H, W = cfg["image_size"]
@@ -107,7 +119,6 @@ def image_print(density_padded: np.ndarray, pad: int, design_px: int, cfg: dict,
     background = _background(cfg["background"], float(cfg.get("background_tilt") or 0.0), (H, W), rng)
     electrons = cfg["photons"] * lamp * vig * (warped + background)
     counts = rng.poisson(np.maximum(electrons, 0)) + rng.normal(0, cfg["read_noise_e"], size=(H, W))
-    adu = counts * cfg["adu_per_e"] + cfg["offset_adu"]
-    img = np.clip(np.round(adu), 0, 65535).astype(np.uint16)
+    img = digitize(counts, cfg)
     pose = dict(pose, blur_px=blur, vignetting=v, lamp=lamp)
     return img, pose, M

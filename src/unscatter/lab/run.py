@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from ..io import InputError, check_batch_meta, list_pngs, output_dir, read_mask, write_png, write_tiff16, write_tsv, write_yaml
-from .microscope import image_print
+from .microscope import digitize, image_print, stored
 from .printer import Printer
 
 
@@ -41,8 +41,7 @@ def dark_level(mic: dict, samples: int = 200_000) -> float:
     moved its prints' threshold. A fixed random stream, apart from the lab's."""
     if mic.get("format", "tif16") != "png8":
         return float(mic["offset_adu"])
-    noise = np.random.default_rng(0).normal(0.0, float(mic["read_noise_e"]) * float(mic["adu_per_e"]), samples)
-    dark = np.clip(np.round(float(mic["offset_adu"]) + noise), 0, 65535).astype(np.uint16) >> 8
+    dark = stored(digitize(np.random.default_rng(0).normal(0.0, float(mic["read_noise_e"]), samples), mic), mic)
     return round(float(dark.mean()), 4)
 
 
@@ -129,7 +128,7 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
             cam_um = stated_pixel_um(mic, float(meta["pixel_size_um"]), pose["scale"], cfg["seed"], mid)
             shutil.copyfile(path, batch / "masks" / f"{mid}.png")
             if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
-                write_png(batch / "images" / f"{mid}.png", (img >> 8).astype(np.uint8))
+                write_png(batch / "images" / f"{mid}.png", stored(img, mic))
             else:
                 write_tiff16(batch / "images" / f"{mid}.tif", img, pixel_size_um=cam_um,
                              tags=(mic.get("pixel_size_metadata") or {}).get("where", "ome"))
