@@ -10,7 +10,7 @@ import tifffile
 from unscatter import masks as patterns
 from unscatter.imaging import register_batch, transform_rms_px
 from unscatter.imaging.priors import image_pixel_size_um, rotation_range, scale_range
-from unscatter.io import InputError, read_print, read_tsv, write_png
+from unscatter.io import InputError, read_print, read_tsv, read_yaml, write_png
 from unscatter.lab import print_batch
 
 
@@ -657,6 +657,57 @@ def test_stated_scales_are_measured_by_the_prints_that_fix_their_scale():
     used, note, shift = stated_scales(priors, many, s)
     assert note == "" and shift == 0 and used["h"][0] == pytest.approx(np.log(1.1) + 0.02)
     assert used["h"][1] == pytest.approx(1.4826 * 0.002) and used["h"][1] >= s.min_scale_sd
+
+
+def test_stated_scatter_is_what_the_prints_scatter_beyond_their_own_spreads():
+    from unscatter.imaging.batch import Settings, stated_scatter
+    from unscatter.imaging.pose import EDGE_SD
+
+    s = Settings()
+    stated = {k: (np.log(1.1), 0.001) for k in "abcdefgh"}
+    d = (0.0, 0.006, -0.006, 0.002, -0.002, 0.004, -0.004)
+    placed = {k: np.log(1.1) + v for k, v in zip("abcdefg", d)}
+    sds = dict.fromkeys(placed, 0.3)
+    r = stated_scatter(stated, placed, sds, 512, 1.5, s)  # a template that misplaces edges by 1.5 px
+    spread = 1.4826 * 0.004  # the robust spread of the differences
+    assert r["prints"] == 7 and r["spread"] == pytest.approx(spread)
+    assert r["spread_px"] == pytest.approx(spread * 512 / np.sqrt(6))  # RMS over the 512 px field
+    assert r["excess_px"] == pytest.approx(np.sqrt(r["spread_px"] ** 2 - 0.3**2))
+    # every print is then held to its stated size within the uncertainty of the batch's median
+    assert r["held_within"] == pytest.approx(np.hypot(s.min_scale_sd, spread / np.sqrt(7)))
+    # prints that claim as much as they scatter leave nothing over
+    assert stated_scatter(stated, placed, dict.fromkeys(placed, 2.0), 512, 1.5, s)["excess_px"] == 0.0
+    # a template that places edges as closely as EDGE_SD: the fits stand, the scatter is the metadata's
+    assert stated_scatter(stated, placed, sds, 512, EDGE_SD, s)["held_within"] is None
+    assert stated_scatter(stated, placed, sds, 512, None, s)["excess_px"] == 0.0
+    # too few prints to measure a spread; prints without a stated size do not count
+    assert stated_scatter(stated, dict(list(placed.items())[:5]), sds, 512, 1.5, s) is None
+    assert stated_scatter({}, placed, sds, 512, 1.5, s) is None
+
+
+def test_stated_pixel_sizes_that_scatter_are_measured_and_a_good_template_keeps_its_fits(tmp_path):
+    """A zoom set by image (0.8 to 1.25), each image's camera pixel stated in OME-XML,
+    the ratios between images held to 0.02 % or scattered by 1 %. The batch measures how
+    far its prints scatter about the stated sizes (``stated_scatter`` in registration.yaml);
+    with the default lab's template, which places the prints' edges within EDGE_SD, the
+    scatter is the metadata's, and the trial prints register within 1 px on their own
+    scales either way (where the template misplaces edges, the stated sizes hold every
+    print's scale: ``test_bench_registration.py::
+    test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them``)."""
+    m = tmp_path / "masks"
+    for k, mask in patterns.trial_masks(8, seed=6).items():
+        write_png(m / f"{k}.png", mask)
+    mic = {"scale": [0.8, 1.25], "rotation_deg": 6.0}
+    for name, jitter in (("steady", 0.0002), ("scattered", 0.01)):
+        b = tmp_path / name
+        md = dict(where="ome", error=0.0, tolerance=0.001, jitter=jitter)
+        print_batch(m, b / "batch", overrides={"microscope": dict(mic, pixel_size_metadata=md)}, seed=17, progress=False)
+        register_batch(b / "batch", b / "reg", skip_failed=True, progress=False)
+        errs = _pose_errors(b / "reg", b / "batch.truth")
+        sc = read_yaml(b / "reg" / "registration.yaml")["stated_scatter"]
+        assert sc["misfit_px"] <= 0.4 and sc["excess_px"] == 0.0 and sc["held_within"] is None, sc
+        assert (sc["spread"] > 0.005) == (name == "scattered"), sc
+        assert all(st == "ok" and e <= 1.0 for st, _, e in errs.values()), errs
 
 
 def _one_feature_masks(root):
