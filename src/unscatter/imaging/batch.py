@@ -953,7 +953,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             f = ch.fit
             f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f))
         p = stated.get(mid)
-        if p is not None and held_stated is not None and not scaled and f.size_sd <= s.hold_size_sd:
+        if (p is not None and held_stated is not None and not scaled and f.size_sd <= s.hold_size_sd
+                and np.isfinite(f.pose_sd)):
             # the batch's prints scatter about their stated sizes more than they should, and
             # its template misplaces their edges (stated_scatter): the stated size holds the
             # scale of every print whose features fix it and whose own scale agrees with it
