@@ -385,6 +385,12 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
                 f"scale are {100 * off:+.2f} % off it, more than its tolerance"), off
 
 
+def field_radius_px(design_px: int) -> float:
+    """The design field's RMS distance from its centre: a log scale error e moves a pose by
+    e times this, RMS over the field (``pose.pose_distance``)."""
+    return design_px / np.sqrt(6.0)
+
+
 def stated_scatter(stated: dict, placed: dict, pose_sds: dict, design_px: int, misfit: float | None,
                    s: Settings) -> dict | None:
     """How far the batch's prints scatter about their stated camera pixel sizes beyond what
@@ -416,7 +422,7 @@ def stated_scatter(stated: dict, placed: dict, pose_sds: dict, design_px: int, m
     if len(d) < s.scale_min_prints:
         return None
     spread = 1.4826 * float(np.median(np.abs(d - np.median(d))))
-    spread_px = spread * design_px / np.sqrt(6.0)
+    spread_px = spread * field_radius_px(design_px)
     claimed = float(np.median([pose_sds[k] for k in placed if k in stated]))
     pulled = misfit is not None and misfit > EDGE_SD
     excess = float(np.sqrt(max(spread_px**2 - claimed**2, 0.0))) if pulled else 0.0
@@ -878,11 +884,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                  "every print held to it within %.2f %%", np.exp(one_scale[0]), 100 * one_scale[1], len(placed),
                  100 * held_scale[1])
 
-    stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo},
-                                        {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}, s)
-
-    scatter = stated_scatter(stated, {mid: log_scale(choices[mid].fit.M) for mid in placed_ids},
-                             {mid: choices[mid].fit.pose_sd for mid in placed_ids}, design_px, misfit, s)
+    placed_scales = {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}
+    stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo}, placed_scales, s)
+    scatter = stated_scatter(stated, placed_scales, {mid: choices[mid].fit.pose_sd for mid in placed_ids}, design_px,
+                             misfit, s)
     held_stated = scatter["held_within"] if scatter else None
     if scatter:
         log.info("stated camera pixel sizes: %d prints whose features fix their scale scatter about them by %.2f %% (%.2f px "
@@ -971,7 +976,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # 0.43 px, 1.69 px off along its lines
             if abs(log_scale(f.M) - p[0]) > s.scale_sigmas * p[1]:
                 return f
-            own = float(np.hypot(f.pose_sd, scatter["excess_px"])) / (design_px / np.sqrt(6.0))
+            own = float(np.hypot(f.pose_sd, scatter["excess_px"])) / field_radius_px(design_px)
             w = own**2 / (own**2 + held_stated**2)  # the stated size's weight
             at = (w * p[0] + (1 - w) * log_scale(f.M), float(1.0 / np.sqrt(1.0 / own**2 + 1.0 / held_stated**2)))
             g = fit(at)
