@@ -286,6 +286,32 @@ def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
     return out
 
 
+def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int) -> tuple[Path, dict]:
+    """The trial masks printed and imaged by the whole random lab (``random_lab``'s
+    microscope, camera and metadata drawn from ``lab_seed`` as ``random_effect_lab``
+    drew its printer, with that printer), and registered as the workflow does: the
+    prints the calibration and diagnosis get, failed prints skipped. Returns the
+    registered folder and what the registration did (against the lab's true poses,
+    ``bench_registration``)."""
+    import bench_registration
+    from unscatter.imaging import register_batch
+    from unscatter.lab import print_batch, random_lab
+    from unscatter.lab.random import describe_lab
+
+    full = dict(random_lab(np.random.default_rng(lab_seed)), printer=over["printer"])
+    for mid, m in trial.items():
+        write_png(d / "masks" / f"{mid}.png", m)
+    print_batch(d / "masks", d / "batch", overrides=full, seed=lab_seed, progress=False)
+    t0 = time.perf_counter()
+    qc = register_batch(d / "batch", d / "prints", skip_failed=True, progress=False)
+    t_reg = time.perf_counter() - t0
+    rows = bench_registration.evaluate(d / "prints", d / "batch.truth", size=size)
+    failed = sum(r["status"] == "failed" for r in qc)
+    return d / "prints", dict(microscope=describe_lab(full).split(" | ")[0], prints_used=len(qc) - failed, failed=failed,
+                              silently_wrong=sum(bench_registration.silently_wrong(r) for r in rows),
+                              reg_s=round(t_reg, 1))
+
+
 def verdict(effect: str, named: list, unexplained: bool) -> str:
     """right / wrong / missed / false alarm (and partial: an outside effect described by a
     library term without the residual flagged)."""
@@ -323,7 +349,8 @@ def random_labs(args) -> None:
     held = args.heldout
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
     root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
-                                                          f"{_designed_tag(args)}{args.tag}")
+                                                          f"{_designed_tag(args)}{'_registered' if args.registered else ''}"
+                                                          f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
@@ -332,7 +359,7 @@ def random_labs(args) -> None:
            + (f" --trial {args.trial}" if args.trial != "paper" else "")
            + (f" --criterion {args.criterion}" if args.trial == "designed" and args.criterion != "d" else "")
            + (f" --noise {args.noise}" if args.trial == "designed" and args.noise else "")
-           + (f" --tag {args.tag}" if args.tag else ""))
+           + (" --registered" if args.registered else "") + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
     rng = np.random.default_rng(seed)
@@ -375,15 +402,19 @@ def random_labs(args) -> None:
         a, _ = _lab_truth(with_fx, level, ho_masks, 0)
         b, _ = _lab_truth(without, level, ho_masks, 0)
         effect_iou = float(np.mean([metrics.iou(a[k], b[k]) for k in ho_masks]))
-        prints = _write_batch(d / "prints", trial, tr_prints, px)
-        write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"]))
+        reg = {}
+        if args.registered:  # the trial prints through the lab's microscope and the registration
+            prints, reg = _registered_batch(d, trial, over, lab_seed, size)
+        else:
+            prints = _write_batch(d / "prints", trial, tr_prints, px)
+        write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"], **reg))
         t0 = time.perf_counter()
         calibrate([prints], d / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False,
                   **({"objective": args.objective} if args.objective else {}))
         t_cal = time.perf_counter() - t0
         t0 = time.perf_counter()
         r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False,
-                     figures=False)
+                     figures=False, workers=args.workers)
         t_diag = time.perf_counter() - t0
         eq1 = load_params(d / "cal" / "params.yaml")
         sel = load_params(d / "diag" / "model.yaml")
@@ -414,13 +445,15 @@ def random_labs(args) -> None:
                    pooled_iou_selected=pooled["selected"], pooled_iou_floor=pooled["floor"], empty_wrong_eq1=empty["eq1"],
                    empty_wrong_selected=empty["selected"], sigma_lab_px=sig_lab, sigma_eq1_px=eq1.values["sigma_px"],
                    sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
-                   T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1))
+                   T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1),
+                   **{k: v for k, v in reg.items() if k != "microscope"})
         lab_rows.append(row)
         line = (f"{li:<4}{effect:<19}{mag:<27}{1 - effect_iou:9.4f}  {row['named']:<32}{'yes' if r['unexplained_residual'] else 'no':<8}{v:<12}"
                 f"{row['iou_eq1']:8.4f}{row['iou_selected']:7.4f}{row['iou_floor']:7.4f}{row['iou_floor'] - row['iou_selected']:+7.4f}"
                 f"{pooled['eq1']:8.4f}/{pooled['selected']:.4f}/{pooled['floor']:.4f}{row['patterns_iou_eq1']:8.4f}{row['patterns_iou_selected']:8.4f}{row['patterns_iou_floor']:8.4f}"
                 f"{row['sigma_eq1_px'] / sig_lab:7.3f}/{row['sigma_selected_px'] / sig_lab:.3f}"
-                f"{row['T_eq1'] / row['T_lab']:5.2f}/{row['T_selected'] / row['T_lab']:.2f}{t_cal:5.0f}s{t_diag:5.0f}s")
+                f"{row['T_eq1'] / row['T_lab']:5.2f}/{row['T_selected'] / row['T_lab']:.2f}{t_cal:5.0f}s{t_diag:5.0f}s"
+                + (f"  reg: {reg['prints_used']} used, {reg['failed']} failed, {reg['silently_wrong']} silent" if reg else ""))
         lines.append(line)
         print(line, flush=True)
         write_tsv(root / "labs.tsv", lab_rows, list(row))
@@ -487,6 +520,10 @@ def summary(rows: list) -> str:
     sig_sel = [r["sigma_selected_px"] / r["sigma_lab_px"] for r in rows if r["effect"] != "heavy_tail"]
     T = [r["T_selected"] / r["T_lab"] for r in rows if r["effect"] in ("none", "illumination_field", "anisotropy")]
     out = [f"detection over {len(rows)} labs: " + ", ".join(f"{v} {n}" for v, n in counts.items())]
+    if "prints_used" in rows[0]:  # --registered: the trial prints through the microscope and the registration
+        out.append(f"registration: {int(sum(r['prints_used'] for r in rows))} trial prints used, "
+                   f"{int(sum(r['failed'] for r in rows))} failed QC, {int(sum(r['silently_wrong'] for r in rows))} "
+                   f"silently wrong (of {len(rows)} labs' trial prints)")
     out += power(rows)
     if "pooled_iou_eq1" in rows[0]:  # runs before the pooled score have only the per-print mean
         pg_sel = [r["pooled_iou_floor"] - r["pooled_iou_selected"] for r in rows]
@@ -539,6 +576,11 @@ def main():
                     help="--trial designed: the design's criterion (design.design_masks)")
     ap.add_argument("--noise", choices=("edge", "pixel"), default=None,
                     help="--trial designed: the design's model of the print noise (design.NOISE; default: its default)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="the diagnosis's worker processes (default: one per CPU core; the result does not depend on it)")
+    ap.add_argument("--registered", action="store_true",
+                    help="random labs: the trial prints through the whole lab (its random microscope, camera and "
+                         "metadata) and the registration, failed prints skipped, instead of the lab's true prints")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()
@@ -574,7 +616,8 @@ def main():
         calibrate([prints], d / "cal", seed=0, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False)
         t_cal = time.perf_counter() - t0
         t0 = time.perf_counter()
-        r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False)
+        r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False,
+                     workers=args.workers)
         t_diag = time.perf_counter() - t0
         b, a = r["before"], r["after"]
         un = ",".join(r["unexplained_diagnostics"]) if r["unexplained_residual"] else "no"

@@ -152,6 +152,9 @@ DEFAULTS = dict(
     # measured on 2 shared cores, 24 prints of 512 x 512, one evaluation at every 2nd pixel took
     # 24-38 ms with 1 thread and 28-76 ms with 2, its gradient 53-81 ms vs 76-650 ms.
     threads=DIAGNOSIS.default.threads,
+    # fits run in this many processes at once, each on one torch thread (None: one per CPU core, ``default_workers``);
+    # the results do not depend on it
+    workers=DIAGNOSIS.default.workers,
     # the error every fit minimises and every model is scored by (fitting.OBJECTIVES);
     # None: the base calibration's (params.yaml objective.name), else the paper's mismatch
     objective=None,
@@ -336,6 +339,131 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
     err = per_print_error(sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights)
     _, effects = split_model_name(ctx.params.model)
     return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
+
+
+@dataclass
+class _Job:
+    """One model's k-fold held-out fits: from ``starts`` (one per fold), the parameters
+    in ``known`` searched around them (``_Context.fit``)."""
+
+    params: Params
+    starts: list
+    known: set
+    seed: int
+    desc: str
+    keep: bool = False  # the current model's context: its spectra are kept for the round's candidates
+
+
+# a worker process's state (``_Fits`` with workers > 1): the prints, the settings, its own caches
+_WORKER: dict = {}
+
+
+def _worker_init(data, s: dict) -> None:
+    torch.set_num_threads(1)
+    _WORKER.clear()
+    _WORKER.update(data=data, s=s, device=torch.device("cpu"), shared={}, round=None, ctx=(None, None))
+
+
+def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int, known: set, desc: str):
+    """One fit in a worker process: the values, the prediction of the ``test`` prints
+    (None: none) and the seconds it took. ``key`` = (round, job index, job name): the
+    folds of one job share a context, and a round's contexts share the masks' spectra
+    (``_Context``; the spectra do not depend on the parameters, so sharing changes no
+    number)."""
+    w = _WORKER
+    if w["round"] != key[0]:  # a round's spectra (the current model's, a candidate's field terms), dropped after it
+        w["round"], w["shared"] = key[0], {}
+    if w["ctx"][0] != key:
+        w["ctx"] = (key, _Context(params, w["data"], w["device"], w["s"], w["shared"], keep=True))
+    ctx = w["ctx"][1]
+    t0 = time.perf_counter()
+    v = ctx.fit(start, train, seed, w["s"], known, desc)
+    return v, (None if test is None else ctx.predict(v, test)), time.perf_counter() - t0
+
+
+def default_workers(device: torch.device | None = None) -> int:
+    """Fits run in one process per CPU core this process may use (one on a GPU)."""
+    if device is not None and device.type != "cpu":
+        return 1
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+class _Fits:
+    """Runs the diagnosis's fits: in this process (``workers`` 1), or in ``workers``
+    processes, each on one torch thread, the folds of every job of a round at once. A
+    fit depends only on its start, prints and seed, so the results do not depend on the
+    number of workers (``tests/test_diagnosis.py``)."""
+
+    def __init__(self, data, device, s: dict, shared: dict, workers: int):
+        self.data, self.device, self.s, self.shared = data, device, s, shared
+        self.workers = int(workers)
+        self.pool = None
+        if self.workers > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn, not fork: a forked child of a process whose torch threads have run can hang
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_worker_init, initargs=(data, s))
+            log.info("the fits run in %d worker processes", self.workers)
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+            self.pool = None
+
+    def heldout(self, jobs: list, folds: list, rnd: int, bar=None) -> list:
+        """Each job's k-fold held-out predictions (``Heldout``), in the order of ``jobs``;
+        ``rnd``: the diagnosis round (its jobs share the current model's spectra)."""
+        if self.pool is not None:
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                return self._parallel(jobs, folds, rnd, bar)
+            except BrokenProcessPool as exc:
+                log.warning("the diagnosis's worker processes stopped (%s); its fits go on in this process (a script "
+                            "that runs the diagnosis with workers > 1 needs its top level under `if __name__ == "
+                            "'__main__':`, as multiprocessing's spawn requires)", exc)
+                self.close()
+        out = []
+        for job in jobs:
+            ctx = _Context(job.params, self.data, self.device, self.s, self.shared, keep=job.keep)
+            out.append(_heldout(ctx, job.starts, folds, self.s, job.known, job.seed, job.desc, bar))
+        return out
+
+    def _parallel(self, jobs: list, folds: list, rnd: int, bar) -> list:
+        from concurrent.futures import as_completed
+
+        B = len(self.data)
+        futures = {}
+        for j, job in enumerate(jobs):
+            for i, test in enumerate(folds):
+                train = np.setdiff1d(np.arange(B), test)
+                futures[self.pool.submit(_worker_fit, (rnd, j, job.desc), job.params, job.starts[i], train, test,
+                                         job.seed + 101 * i, job.known, f"{job.desc} fold {i}")] = (j, i)
+        done = {}
+        for fut in as_completed(futures):
+            done[futures[fut]] = fut.result()
+            if bar is not None:
+                bar.update(1)
+        out = []
+        for j, job in enumerate(jobs):
+            sims = np.zeros(self.data.prints.shape, bool)
+            for i, test in enumerate(folds):
+                sims[test] = done[j, i][1]
+            err = per_print_error(sims, self.data.prints, self.s["objective"], self.s["area_floor"],
+                                  print_weights(self.data.prints, self.s["objective"], self.s["area_floor"]))
+            _, effects = split_model_name(job.params.model)
+            out.append(Heldout(job.params.model, effects, [done[j, i][0] for i in range(len(folds))], sims, err,
+                               float(sum(done[j, i][2] for i in range(len(folds))))))
+        return out
+
+    def fit(self, params: Params, start: dict, seed: int, known: set, desc: str) -> dict:
+        """A fit on every print (the selected model's), in this process."""
+        return _Context(params, self.data, self.device, self.s, self.shared).fit(start, None, seed, self.s, known, desc)
 
 
 SPREAD = "grouped jackknife over the k fold fits: sqrt((k - 1) / k * sum (fold value - mean)^2)"
@@ -929,13 +1057,25 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
 
     # -- round 0: the base model's held-out residuals -----------------------------------
     shared: dict = {}
-    ctx = _Context(base, data, device, s, shared)
+    workers = s["workers"] if s["workers"] is not None else default_workers(device)
+    if device.type != "cpu":
+        workers = 1
+    fits = _Fits(data, device, s, shared, workers)
+    try:
+        return _rounds(data, base, base_path, folds, cands, fits, bar, t_start, out_dir, seed, s)
+    finally:
+        fits.close()
+        bar.close()
+
+
+def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fits", bar, t_start: float, out_dir: Path,
+            seed: int, s: dict) -> dict:
+    device, shared, px, B = fits.device, fits.shared, data.pixel_size_um, len(data)
     known = set(base.free)
-    cur = _heldout(ctx, [dict(base.values)] * len(folds), folds, s, known, seed, "base", bar)
+    (cur,) = fits.heldout([_Job(base, [dict(base.values)] * len(folds), known, seed, "base")], folds, 0, bar)
     cur.values = dict(base.values)
     base_ho = cur
     cur_params = base
-    del ctx
 
     ranking = []
     per_print = []  # heldout_errors.tsv
@@ -951,9 +1091,8 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         # the control: the current model refitted from its fold fits with the candidates'
         # budget, so that an improvement is the effect's and not the extra optimisation's
         shared["spectra"] = {}  # the current model's spectra: the control's, read by the candidates
-        ctx = _Context(cur_params, data, device, s, shared, keep=True)
-        ctl = _heldout(ctx, cur.fold_values, folds, s, set(cur_params.free), seed + 1000 * rnd, "control", bar)
-        del ctx
+        (ctl,) = fits.heldout([_Job(cur_params, cur.fold_values, set(cur_params.free), seed + 1000 * rnd, "control", keep=True)],
+                              folds, rnd, bar)
         if ctl.error.mean() <= cur.error.mean():
             ctl.values = cur.values
             if cur is base_ho:
@@ -965,18 +1104,18 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                             accepted=False, selected=False, seconds=round(ctl.seconds, 2), effect_params=""))
         per_print.append(errors_row(rnd, "(control)", cur.error))
         results = {}
+        jobs = []
         for c in remaining:
-            t0 = time.perf_counter()
             p = extend_params(cur_params, [c])
             p = p.with_values(**{k: v for k, v in cur.values.items() if k in p.values})
-            ctx = _Context(p, data, device, s, shared)
             starts = []
             for v in cur.fold_values:
                 st = dict(p.values)
                 st.update({k: x for k, x in v.items() if k in st})
                 starts.append(st)
-            ho = _heldout(ctx, starts, folds, s, set(cur_params.free), seed + 1000 * rnd, f"+{c}", bar)
-            del ctx
+            jobs.append(_Job(p, starts, set(cur_params.free), seed + 1000 * rnd, f"+{c}"))
+        for c, job, ho in zip(remaining, jobs, fits.heldout(jobs, folds, rnd, bar)):
+            p = job.params
             stats = paired_bootstrap(cur.error, ho.error, s["bootstrap"], seed + rnd)
             per_print.append(errors_row(rnd, c, ho.error))
             ok = accepted(stats, s)
@@ -988,7 +1127,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                                 relative_improvement=stats["relative"], ci_lo=stats["ci_lo"], ci_hi=stats["ci_hi"],
                                 p_value=stats["p_value"],
                                 heldout_iou=float(np.mean([metrics.iou(a, b) for a, b in zip(ho.sims, data.prints)])),
-                                accepted=ok, selected=False, seconds=round(time.perf_counter() - t0, 2),
+                                accepted=ok, selected=False, seconds=round(ho.seconds, 2),
                                 effect_params=", ".join(f"{k}={v:.4g}" for k, v in fold_mean.items())))
             log.info("round %d: +%s held-out mismatch %.5f -> %.5f (%+.1f %%, 95%% CI of improvement %.2e..%.2e)%s", rnd, c,
                      cur.error.mean(), ho.error.mean(), -100 * stats["relative"], stats["ci_lo"], stats["ci_hi"],
@@ -1002,15 +1141,13 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
                 r["selected"] = True
         p, ho, _, _ = results[best]
         # the full-data fit of the extended model, warm-started from the current one
-        ctx = _Context(p, data, device, s, shared)
-        start = dict(p.values)
-        ho.values = ctx.fit(start, None, seed + 7000 + rnd, s, set(cur_params.free), f"full +{best}")
-        del ctx
+        ho.values = fits.fit(p, dict(p.values), seed + 7000 + rnd, set(cur_params.free), f"full +{best}")
         bar.update(1)
         bar.total += len(folds) * len(remaining) + 1
         bar.refresh()
         accepted_effects.append(best)
         cur, cur_params = ho, p.with_values(**ho.values)
+    fits.close()
     bar.close()
 
     # the base model's errors as before_after.tsv scores them (round 1's control where it refitted better)

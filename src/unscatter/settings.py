@@ -333,6 +333,9 @@ DIAGNOSIS = Stage(
     seed=_seed("Seed of the folds, the fits and the bootstrap."),
     quick=_bool(False, "Small fits (unscatter.diagnosis.QUICK), seconds to a minute; for CI."),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
+    workers=_int(None, "Processes that run the fits at once, each on one torch thread (the folds of every candidate "
+                 "of a round in parallel); null - one per CPU core (1 on a GPU). The result does not depend on it.",
+                 lo=1, nullable=True, workflow=False),
 )
 
 DESIGNS = Stage(

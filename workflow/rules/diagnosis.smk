@@ -17,7 +17,7 @@ rule diagnose:
         seed=config["diagnosis"]["seed"],
         quick=config["diagnosis"]["quick"],
         code=code_version("diagnosis", "calibration", "model", "io", "metrics"),
-    threads: 1  # one torch thread is fastest for its small FFTs (unscatter.diagnosis.DEFAULTS)
+    threads: 2  # its fits run in one process a thread, each on one torch thread (unscatter.diagnosis.DEFAULTS workers)
     resources:
         mem_mb=6000,
         runtime=60,

@@ -17,6 +17,7 @@ def main(snakemake):
         candidates=p.candidates or None,
         quick=p.quick,
         progress=False,
+        workers=snakemake.threads,
     )
     b, a = r["before"], r["after"]
     log.info("effects added: %s; held-out IoU %.4f -> %.4f, pixel error %.4f -> %.4f; unexplained residual: %s",
