@@ -2,8 +2,8 @@
 how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
-    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice]
-        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]]
+    python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--registered]
+        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]] [--workers N]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
 reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
@@ -12,7 +12,10 @@ from none, heavy_tail, anisotropy, dose_nonlinearity (gamma 0.6-0.8 or 1.3-1.8),
 illumination_field (quartic +-0.15..0.3), edge_offset (+-3..7 um) and a lamp hotspot
 (outside the library: right when the residual is flagged unexplained). The lab prints
 32 trial masks (its true prints in mask coordinates: microscope and registration left
-out, so only calibration and diagnosis are judged); ``calibrate`` (defaults, no CV or
+out, so only calibration and diagnosis are judged; ``--registered``: printed and imaged
+by the whole random lab, its microscope, camera and metadata included, and registered
+as the workflow does, failed prints skipped, with the same labs for the same seed);
+``calibrate`` (defaults, no CV or
 bootstrap) then ``diagnose`` (defaults, or ``quick``) run on them. Scored on 16 held-out
 paper masks and 16 test patterns (gratings, near-threshold, dots, ...) against the lab's
 noisy prints: IoU of Eq. 1, of the selected model and of the floor (the per-pixel
