@@ -336,9 +336,15 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
         sims[test] = ctx.predict(v, test)
         if bar is not None:
             bar.update(1)
-    err = per_print_error(sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights)
-    _, effects = split_model_name(ctx.params.model)
-    return Heldout(ctx.params.model, effects, values, sims, err, time.perf_counter() - t0)
+    return _as_heldout(ctx.params.model, values, sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights,
+                       time.perf_counter() - t0)
+
+
+def _as_heldout(model: str, values: list, sims: np.ndarray, prints: np.ndarray, objective: str, area_floor: float,
+                weights: np.ndarray, seconds: float) -> Heldout:
+    """The k fold fits' values and held-out predictions as a ``Heldout`` (per-print error)."""
+    _, effects = split_model_name(model)
+    return Heldout(model, effects, values, sims, per_print_error(sims, prints, objective, area_floor, weights), seconds)
 
 
 @dataclass
@@ -399,6 +405,7 @@ class _Fits:
 
     def __init__(self, data, device, s: dict, shared: dict, workers: int):
         self.data, self.device, self.s, self.shared = data, device, s, shared
+        self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
         self.workers = int(workers)
         self.pool = None
         if self.workers > 1:
@@ -454,11 +461,9 @@ class _Fits:
             sims = np.zeros(self.data.prints.shape, bool)
             for i, test in enumerate(folds):
                 sims[test] = done[j, i][1]
-            err = per_print_error(sims, self.data.prints, self.s["objective"], self.s["area_floor"],
-                                  print_weights(self.data.prints, self.s["objective"], self.s["area_floor"]))
-            _, effects = split_model_name(job.params.model)
-            out.append(Heldout(job.params.model, effects, [done[j, i][0] for i in range(len(folds))], sims, err,
-                               float(sum(done[j, i][2] for i in range(len(folds))))))
+            out.append(_as_heldout(job.params.model, [done[j, i][0] for i in range(len(folds))], sims, self.data.prints,
+                                   self.s["objective"], self.s["area_floor"], self.weights,
+                                   float(sum(done[j, i][2] for i in range(len(folds))))))
         return out
 
     def fit(self, params: Params, start: dict, seed: int, known: set, desc: str) -> dict:
@@ -1155,7 +1160,7 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
 
     # -- diagnostics before and after ----------------------------------------------------
     geo = geometry(data.masks, px, s)
-    weights = print_weights(data.prints, s["objective"], s["area_floor"])
+    weights = fits.weights
     margins = _Context(base, data, device, s, shared).margins(base_ho.fold_values)
     rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho, margins, folds, weights, s, seed, "before")
     if cur is base_ho:
