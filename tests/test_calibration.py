@@ -154,6 +154,23 @@ def test_seeded_runs_are_reproducible(lab, tmp_path):
     assert read_tsv(tmp_path / "a" / "history.tsv") == read_tsv(tmp_path / "b" / "history.tsv")
 
 
+def test_refits_in_worker_processes_give_the_same_calibration_as_in_one(lab, tmp_path, caplog):
+    """The refits of the folds and the bootstrap run in worker processes (``workers``);
+    each depends only on its prints, weights and seed, so the held-out metrics and the
+    bootstrap's parameters are those of one process, to the last digit."""
+    runs = {}
+    for w in (1, 2):
+        caplog.clear()
+        with caplog.at_level("INFO", logger="unscatter.fitting"):
+            p = calibrate([lab.dir8], tmp_path / f"w{w}", seed=3, **dict(FAST, folds=2, bootstrap=3), workers=w)
+        assert ("the refits run in 2 worker processes" in caplog.text) == (w == 2)
+        assert "worker processes stopped" not in caplog.text
+        boot = read_tsv(tmp_path / f"w{w}" / "bootstrap.tsv")
+        runs[w] = (p.values, read_tsv(tmp_path / f"w{w}" / "cv.tsv"), boot, p.info["parameter_extras"])
+        assert len(boot) == 3 and len(runs[w][1]) == 8
+    assert runs[2] == runs[1]
+
+
 def test_bounds_that_exclude_the_optimum_are_flagged(lab, tmp_path):
     with pytest.warns(UserWarning, match="sigma_px .* upper bound"):
         p = calibrate([lab.dir8], tmp_path, bounds={"sigma_px": (0.5, 2.0)}, **FAST)

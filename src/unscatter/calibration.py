@@ -55,11 +55,13 @@ from .fitting import (
     OBJECTIVES,
     REFINE_TOL,
     Objective,
+    Refits,
     Space,
     band_factor,
     bootstrap,
     build_objective,
     cross_validate,
+    default_workers,
     fit_params,
     grid_factor,
     hard_scores,
@@ -120,6 +122,9 @@ DEFAULTS = dict(
     # threads on 2 shared cores OpenMP spin-waits, measured 3.5x slower than 1 thread on a
     # busy machine. Results depend (slightly) on the thread count: part of the settings.
     threads=_D.threads,
+    # the refits of the folds and the bootstrap run in this many processes at once, each on one torch thread (None: one
+    # per CPU core, fitting.default_workers; 1 on a GPU); with threads 1 the results do not depend on it
+    workers=_D.workers,
     # what the fit minimises (OBJECTIVES): "mismatch", the paper's mean squared distance,
     # weighs each print by its area; "dice" (1 - Dice per print, IoU's twin) and
     # "pixel_error" weigh each print as the scores of prints (IoU, pixel error) do
@@ -269,24 +274,17 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     f_refit = grid_factor((H, W), s["refit_size"])
     log.info("calibrating %s on %d prints (%dx%d): GA on a %dx%d grid", model, B, H, W, H // f_ga, W // f_ga)
 
-    sim = FixedMasks(m, masks_to_tensor(data.masks, device), support_px=support)
     printer_params, printer_model = params, m
     meas = _measurement(s["measurement"], data)
+    m, sim, obj = _objectives(model, data.masks, data.prints, support, meas, device, s)
     if meas is not None:
         # the measured print is the density blurred at the registration's level: fit it so, the
         # microscope's blur (unless given) along with the printer's parameters
         log.info("fitting through the measurement: %s", meas.as_dict())
-        sim = MeasuredMasks(sim, meas)
         # the search holds the blur (at the registration's estimate); the profile below fits it
         params = Params(params.model, {**params.values, BLUR: float(np.clip(meas.blur_px, *meas.blur_bounds))},
                         {**params.bounds, BLUR: tuple(meas.blur_bounds)}, (*params.fixed, BLUR), params.pixel_size_um)
-        m = MeasuredModel(m, meas)
         space = Space(params)
-    objs: dict[int, Objective] = {}
-    def obj(f):
-        if f not in objs:
-            objs[f] = build_objective(sim, data.prints, f, s["objective"], s["area_floor"])
-        return objs[f]
 
     full = obj(1)
     run_warnings: list[str] = []
@@ -325,14 +323,18 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     sims = _simulated(m, full, values, device)
     per_print = [dict(id=lab, iou=metrics.iou(sm, p), pixel_error=metrics.pixel_error(sm, p), mismatch=float(np.mean(sm != p)))
                  for lab, sm, p in zip(data.labels, sims, data.prints)]
-    refit = dict(space=space, model=m, obj=obj, f_ga=band_factor(full.sim, m, values, f_ga, GA_BAND_TOL),
-                 f_ref=band_factor(full.sim, m, values, f_refit), device=device, s=s, values=values)
-    t0 = time.perf_counter()
-    cv_rows, cv_summary = cross_validate(data, full, refit, seed, s["folds"], per_print)
-    t_cv = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    boot_rows, unc = bootstrap(data, refit, seed, s["bootstrap"])
-    t_boot = time.perf_counter() - t0
+    f_ga_refit, f_ref_refit = band_factor(full.sim, m, values, f_ga, GA_BAND_TOL), band_factor(full.sim, m, values, f_refit)
+    refit = dict(space=space, model=m, obj=obj, f_ga=f_ga_refit, f_ref=f_ref_refit, device=device, s=s, values=values)
+    workers = 1 if device.type != "cpu" else (s["workers"] if s["workers"] is not None else default_workers(device))
+    n_refits = (s["folds"] if (s["folds"] or 0) >= 2 else 0) + (s["bootstrap"] or 0)
+    context = (model, data.masks, data.prints, support, meas, device, s, space, values, f_ga_refit, f_ref_refit)
+    with Refits(refit, min(workers, max(n_refits, 1)), _refit_context, context) as runner:
+        t0 = time.perf_counter()
+        cv_rows, cv_summary = cross_validate(data, full, refit, seed, s["folds"], per_print, runner)
+        t_cv = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        boot_rows, unc = bootstrap(data, refit, seed, s["bootstrap"], runner)
+        t_boot = time.perf_counter() - t0
     if unc.get("note"):
         run_warnings.append(unc["note"])
     for w in run_warnings:
@@ -443,6 +445,33 @@ def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Mea
             if f < best[1]:
                 best = (v, f)
     return best[0], rows + [searched]
+
+
+def _objectives(model: str, masks: np.ndarray, prints: np.ndarray, support: float, meas: Measurement | None, device,
+                s: dict):
+    """The model fitted, its simulator of the masks and ``obj(f)``, the objective on every
+    f-th pixel (built once per f): Eq. 1's, or through the measurement stage ``meas``."""
+    m = get_model(model)
+    sim = FixedMasks(m, masks_to_tensor(masks, device), support_px=support)
+    if meas is not None:
+        sim, m = MeasuredMasks(sim, meas), MeasuredModel(m, meas)
+    objs: dict[int, Objective] = {}
+
+    def obj(f):
+        if f not in objs:
+            objs[f] = build_objective(sim, prints, f, s["objective"], s["area_floor"])
+        return objs[f]
+
+    return m, sim, obj
+
+
+def _refit_context(model: str, masks, prints, support: float, meas, device, s: dict, space: Space, values: dict,
+                   f_ga: int, f_ref: int) -> dict:
+    """What a refit of the folds and the bootstrap needs (``fitting._refit``), built from
+    inputs that pickle: in a worker process (``fitting.Refits``) it is built from them as
+    the calibration built its own."""
+    m, _, obj = _objectives(model, masks, prints, support, meas, device, s)
+    return dict(space=space, model=m, obj=obj, f_ga=f_ga, f_ref=f_ref, device=device, s=s, values=values)
 
 
 def _measurement(setting, data: PrintSet) -> Measurement | None:

@@ -264,8 +264,9 @@ def _bounds(ctx, param, value):
 @option(S.CALIBRATION, "measurement")
 @click.option("--device", default=None, help="torch device (default: cuda if available, else cpu).")
 @option(S.CALIBRATION, "threads")
+@option(S.CALIBRATION, "workers")
 def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bounds, free_c0, objective, refine, folds,
-                  bootstrap, measurement, device, threads):
+                  bootstrap, measurement, device, threads, workers):
     """Calibrate the printer simulator on registered prints (PRINTS_DIR: registration outputs)."""
     import warnings
 
@@ -281,7 +282,8 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
         warnings.simplefilter("ignore", UserWarning)
         p = calibrate(list(prints_dirs), out_dir, model=model, seed=seed, population=population, generations=generations,
                       bounds=bounds, free_c0=free_c0, objective=objective, refine=refine, folds=folds,
-                      bootstrap=bootstrap, measurement=measurement, device=device, threads=threads)
+                      bootstrap=bootstrap, measurement=measurement, device=device, threads=threads,
+                      workers=workers)
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""

@@ -79,6 +79,7 @@ from .fitting import (
     Space,
     band_factor,
     build_objective,
+    default_workers,
     fit_params,
     grid_factor,
     hard_scores,
@@ -385,16 +386,6 @@ def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int,
     t0 = time.perf_counter()
     v = ctx.fit(start, train, seed, w["s"], known, desc)
     return v, (None if test is None else ctx.predict(v, test)), time.perf_counter() - t0
-
-
-def default_workers(device: torch.device | None = None) -> int:
-    """Fits run in one process per CPU core this process may use (one on a GPU)."""
-    if device is not None and device.type != "cpu":
-        return 1
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
 
 
 class _Fits:

@@ -8,7 +8,8 @@
   it lowers the hard objective (``fit_params``); sampling factors chosen so the kernel
   found is not aliased (``band_factor``);
 - folds and resamples: k-fold cross-validation over prints and a bootstrap over prints,
-  each a small refit around the full-data optimum (``cross_validate``, ``bootstrap``).
+  each a small refit around the full-data optimum (``cross_validate``, ``bootstrap``),
+  run in this process or in worker processes (``Refits``, ``default_workers``).
 
 ``unscatter.calibration`` fits Eq. 1 (Guan et al. 2022) with it; ``unscatter.diagnosis``
 fits the candidate effects with it and scores models by the same held-out error.
@@ -17,6 +18,7 @@ fits the candidate effects with it and scores models by the same held-out error.
 from __future__ import annotations
 
 import logging
+import os
 import random
 from dataclasses import dataclass
 
@@ -405,6 +407,16 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
 # ------------------------------------------------------------------- folds, resamples
 
 
+def default_workers(device: torch.device | None = None) -> int:
+    """Fits run in one process per CPU core this process may use (one on a GPU)."""
+    if device is not None and torch.device(device).type != "cpu":
+        return 1
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def _refit(refit: dict, idx, weights, seed: int, desc: str) -> Fit:
     """A cheaper fit on a subset/resample: small GA in a box around the full-data optimum,
     then the refinement. The GA is not seeded with the optimum itself: an elite copy of it
@@ -422,9 +434,73 @@ def _refit(refit: dict, idx, weights, seed: int, desc: str) -> Fit:
                       dict(s, progress=False), s["refit_population"], s["refit_generations"], desc=desc, history=False)
 
 
-def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, per_print: list):
+# a worker process's refit context (``Refits`` with workers > 1), built once by its initializer
+_REFITS: dict = {}
+
+
+def _refits_init(build, args: tuple) -> None:
+    torch.set_num_threads(1)
+    _REFITS.clear()
+    _REFITS["refit"] = build(*args)
+
+
+def _refits_one(idx, weights, seed: int, desc: str) -> Fit:
+    return _refit(_REFITS["refit"], idx, weights, seed, desc)
+
+
+class Refits:
+    """Runs the refits of the folds and of the bootstrap (``_refit``): in this process
+    (``workers`` 1), or in ``workers`` spawned processes, each on one torch thread with
+    its own copy of the refit context, ``build(*args)`` (``build``: a module-level
+    function, so that it pickles; it must build what ``refit`` holds, objective and
+    model, from the same inputs). A refit depends only on its prints, weights and seed,
+    so the results are those of one process on one thread, whatever the number of
+    workers (``tests/test_calibration.py``). A pool that breaks (a script without an
+    ``if __name__ == "__main__":`` guard, which spawn needs) is warned about and the
+    refits go on in this process."""
+
+    def __init__(self, refit: dict, workers: int = 1, build=None, args: tuple = ()):
+        self.refit, self.workers, self.pool = refit, int(workers), None
+        if self.workers > 1 and build is not None:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            # spawn, not fork: a forked child of a process whose torch threads have run can hang
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_refits_init, initargs=(build, args))
+            log.info("the refits run in %d worker processes", self.workers)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+            self.pool = None
+
+    def run(self, tasks: list) -> list:
+        """The ``Fit`` of each task (idx, weights, seed, desc), in the order given."""
+        if self.pool is not None and len(tasks) > 1:
+            from concurrent.futures.process import BrokenProcessPool
+
+            try:
+                futures = [self.pool.submit(_refits_one, *task) for task in tasks]
+                return [f.result() for f in futures]
+            except BrokenProcessPool as exc:
+                log.warning("the refits' worker processes stopped (%s); the refits go on in this process (a script "
+                            "that calibrates with workers > 1 needs its top level under `if __name__ == '__main__':`, "
+                            "as multiprocessing's spawn requires)", exc)
+                self.close()
+        return [_refit(self.refit, *task) for task in tasks]
+
+
+def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, per_print: list, runner: Refits | None = None):
     """k-fold over prints: refit without a fold, score the fold's prints (IoU, pixel
-    error). ``data``: the prints (``calibration.PrintSet``: labels, prints)."""
+    error). ``data``: the prints (``calibration.PrintSet``: labels, prints); ``runner``:
+    where the refits run (None: in this process)."""
     B = len(data)
     folds = int(folds or 0)
     if folds < 2 or B < 2:
@@ -432,10 +508,12 @@ def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, pe
     k = min(folds, B)
     perm = np.random.default_rng([seed, 7]).permutation(B)
     m, device = refit["model"], refit["device"]
+    runner = runner or Refits(refit)
+    tests = np.array_split(perm, k)
+    trains = [np.setdiff1d(np.arange(B), test) for test in tests]
+    fits = runner.run([(train, None, seed + 1000 + i, f"cv fold {i}") for i, train in enumerate(trains)])
     rows = []
-    for i, test in enumerate(np.array_split(perm, k)):
-        train = np.setdiff1d(np.arange(B), test)
-        fit = _refit(refit, train, None, seed + 1000 + i, f"cv fold {i}")
+    for i, (test, train, fit) in enumerate(zip(tests, trains, fits)):
         with torch.no_grad():
             sims = full.subset(test).sim.prints(m.theta(fit.values, device))[0].cpu().numpy()
         for j, sim in zip(test, sims):
@@ -451,15 +529,16 @@ def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, pe
     return rows, summary
 
 
-def bootstrap(data, refit: dict, seed: int, replicates: int):
-    """Refit on prints resampled with replacement; spread of each free parameter."""
+def bootstrap(data, refit: dict, seed: int, replicates: int, runner: Refits | None = None):
+    """Refit on prints resampled with replacement; spread of each free parameter.
+    ``runner``: where the refits run (None: in this process)."""
     n = int(replicates or 0)
     names = refit["space"].names
     if n < 1:
         return [], dict(method="none", replicates=0)
     B = len(data)
     rng = np.random.default_rng([seed, 11])
-    rows, skipped = [], 0
+    tasks, skipped = [], 0
     for r in range(n):
         counts = rng.multinomial(B, np.full(B, 1.0 / B))
         idx = np.nonzero(counts)[0]
@@ -467,8 +546,10 @@ def bootstrap(data, refit: dict, seed: int, replicates: int):
         if not pr.any() or pr.all():  # a resample without edges identifies nothing
             skipped += 1
             continue
-        fit = _refit(refit, idx, counts[idx], seed + 2000 + r, f"bootstrap {r}")
-        rows.append(dict(replicate=r, prints=len(idx), objective=fit.objective, **{k: fit.values[k] for k in names}))
+        tasks.append((r, idx, counts[idx]))
+    fits = (runner or Refits(refit)).run([(idx, w, seed + 2000 + r, f"bootstrap {r}") for r, idx, w in tasks])
+    rows = [dict(replicate=r, prints=len(idx), objective=fit.objective, **{k: fit.values[k] for k in names})
+            for (r, idx, _), fit in zip(tasks, fits)]
     out = dict(method="bootstrap over prints (refits: small GA around the full-data optimum + refinement)", replicates=n,
                used=len(rows), parameters={})
     if skipped:

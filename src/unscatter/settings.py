@@ -320,6 +320,9 @@ CALIBRATION = Stage(
                         "microscope (its blur fitted) and thresholded at the registration's level, as "
                         "registration.yaml records it (prints without one: none).", workflow=False),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
+    workers=_int(None, "Processes that run the refits of the folds and the bootstrap at once, each on one torch thread; "
+                 "null - one per CPU core (1 on a GPU). With threads 1 the result does not depend on it.",
+                 lo=1, nullable=True, workflow=False),
 )
 
 DIAGNOSIS = Stage(

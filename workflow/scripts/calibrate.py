@@ -19,6 +19,7 @@ def main(snakemake):
         bootstrap=p.bootstrap,
         free_c0=p.free_c0,
         objective=p.objective,
+        workers=snakemake.threads,  # the refits of the folds and the bootstrap, one process a thread
         progress=False,
     )
     for w in params.info.get("warnings", []):
