@@ -28,7 +28,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
-from unscatter.calibration import DEFAULTS, calibrate, load_prints
+from unscatter.calibration import DEFAULTS, calibrate
+from unscatter.prints import load_prints
 from unscatter.fitting import Objective, Space, refine, run_ga
 from unscatter.io import read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks

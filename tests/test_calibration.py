@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from unscatter import metrics
-from unscatter.calibration import calibrate, load_prints
+from unscatter.calibration import calibrate
+from unscatter.prints import load_prints
 from unscatter.io import InputError, read_mask, read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
 from unscatter.model import design_coords, load_params

@@ -710,7 +710,7 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
     F = information(cands, params, U, device=device, progress=bar)
     start = None
     if prints:
-        from .calibration import load_prints
+        from .prints import load_prints
 
         data = load_prints(prints)
         start = information(data.masks, params, U, device=device).sum(axis=1)

@@ -70,11 +70,11 @@ from scipy import ndimage
 from scipy.stats import t as student_t
 
 from . import metrics
-from .calibration import DEFAULTS as CALIBRATION_DEFAULTS
-from .calibration import load_prints
 from .fitting import (
+    AREA_FLOOR,
     OBJECTIVES,
     REFINE_TOL,
+    SEARCH,
     Objective,
     Space,
     band_factor,
@@ -89,6 +89,7 @@ from .fitting import (
     residual_rgb,
 )
 from .io import InputError, output_dir, write_tsv
+from .prints import load_prints
 from .settings import DIAGNOSIS
 from .model import (
     EFFECTS,
@@ -237,7 +238,7 @@ class _Context:
                 lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
         space = Space(p, lo, hi)
         f_ref = band_factor(self.sim, self.model, centre, self.f_ref) if self.f_ref else None
-        settings = {**CALIBRATION_DEFAULTS, **{k: s[k] for k in ("temperatures", "refine_iters", "refine_tol", "objective", "area_floor")},
+        settings = {**SEARCH, **{k: s[k] for k in ("temperatures", "refine_iters", "refine_tol", "objective", "area_floor")},
                     "progress": False}
         init = [space.encode(centre)] + ([space.encode(start)] if centre is not start else [])
         fit = fit_params(space, self.model, obj, f_ga, f_ref, self.f_check, self.device, seed, settings, s["population"],
@@ -1031,7 +1032,7 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
     if s["objective"] is None:
         s["objective"] = recorded.get("name") or "mismatch"
     if s["area_floor"] is None:
-        s["area_floor"] = float(recorded.get("area_floor", CALIBRATION_DEFAULTS["area_floor"]))
+        s["area_floor"] = float(recorded.get("area_floor", AREA_FLOOR))
     if s["objective"] not in OBJECTIVES:
         raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
     _, have = split_model_name(base.model)

@@ -45,6 +45,12 @@ OBJECTIVES = {
 }
 OBJECTIVE = OBJECTIVES["mismatch"]
 
+# The GA's operators (DEAP; ``run_ga``), for the calibration and the diagnosis alike: crossover
+# and mutation probabilities, tournament size, individuals kept unchanged (elite).
+SEARCH = dict(cxpb=0.7, mutpb=0.3, tournament=3, elite=2)
+# dice, pixel_error: a print's area counts as at least about this share of the field
+AREA_FLOOR = 0.02
+
 
 def build_objective(sim: FixedMasks, prints: np.ndarray, factor: int, objective: str = "mismatch",
                     area_floor: float = 0.02) -> Objective:
@@ -499,7 +505,7 @@ class Refits:
 
 def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, per_print: list, runner: Refits | None = None):
     """k-fold over prints: refit without a fold, score the fold's prints (IoU, pixel
-    error). ``data``: the prints (``calibration.PrintSet``: labels, prints); ``runner``:
+    error). ``data``: the prints (``prints.PrintSet``: labels, prints); ``runner``:
     where the refits run (None: in this process)."""
     B = len(data)
     folds = int(folds or 0)

@@ -17,7 +17,7 @@ rule calibrate:
         bootstrap=config["calibration"]["bootstrap"],
         free_c0=config["calibration"]["free_c0"],
         objective=config["calibration"]["objective"],
-        code=code_version("calibration", "measurement", "fitting", "model", "io", "metrics"),
+        code=code_version("calibration", "measurement", "fitting", "prints", "model", "io", "metrics"),
     threads: 2
     resources:
         mem_mb=6000,

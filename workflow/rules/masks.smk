@@ -41,7 +41,7 @@ rule next_trial_masks:
         draws=config["trial_masks"]["draws"],
         criterion=config["trial_masks"]["criterion"],
         fiducials=config["trial_masks"]["fiducials"],
-        code=code_version("design", "masks", "model", "io"),
+        code=code_version("design", "masks", "prints", "model", "io"),
     threads: 2
     resources:
         mem_mb=4000,
