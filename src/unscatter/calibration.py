@@ -70,8 +70,8 @@ from .fitting import (
     residual_rgb,
 )
 from .io import InputError, output_dir, read_mask, read_yaml, write_rgb, write_tsv
-from .prints import PrintSet, load_prints
 from .measurement import BLUR, MeasuredMasks, MeasuredModel, Measurement, from_registration
+from .prints import PrintSet, load_prints
 from .settings import CALIBRATION
 from .model import (
     FixedMasks,
@@ -85,9 +85,8 @@ from .model import (
 
 log = logging.getLogger(__name__)
 
-
 # The user-facing settings (population, generations, folds, bootstrap, free_c0, refine,
-# threads) take their defaults and bounds from unscatter.settings.CALIBRATION.
+# threads, workers) take their defaults and bounds from unscatter.settings.CALIBRATION.
 _D = CALIBRATION.default
 DEFAULTS = dict(
     free_c0=_D.free_c0,  # the gauge: fix c0 = 1 (see unscatter.model)
