@@ -187,6 +187,30 @@ def test_an_image_that_is_no_print_fails_instead_of_being_empty(tmp_path, gratin
     assert rows["trial_001"]["status"] == "ok"
 
 
+def test_a_dim_8bit_batch_whose_noise_is_below_one_count_is_still_a_batch_of_prints(tmp_path):
+    """8-bit images whose background sits 4 to 5 counts above zero, with noise well under a
+    count: an image whose background lies halfway between two counts reads a pixel noise of
+    0.74 counts, one that lies on a count reads almost none. That is rounding, not another
+    kind of image; full-range noise in the same batch still is one."""
+    from PIL import Image
+
+    from unscatter.imaging.batch import Settings, implausible
+    from unscatter.imaging.flatfield import correct_image
+
+    rng = np.random.default_rng(5)
+    paths = {}
+    for i, level in enumerate([4.5, 4.98, 5.0, 4.55, 4.99, 4.5, 5.02, 4.6]):
+        img = level + 0.15 * rng.standard_normal((240, 240))
+        img[80:160, 60:180] += 70.0  # a print
+        paths[f"p{i}"] = tmp_path / f"p{i}.png"
+        Image.fromarray(np.clip(np.round(img), 0, 255).astype(np.uint8)).save(paths[f"p{i}"])
+    paths["noise"] = tmp_path / "noise.png"
+    Image.fromarray(rng.integers(0, 256, (240, 240), dtype=np.uint8)).save(paths["noise"])
+    s = Settings()
+    corr = {k: correct_image(k, p, 0.0, s, "divide") for k, p in paths.items()}
+    assert set(implausible(corr, s)) == {"noise"}
+
+
 # ------------------------------------------------------------------------- priors
 
 
@@ -400,6 +424,36 @@ def test_a_feature_that_barely_or_does_not_print_fixes_no_scale():
     shown = np.where(np.isfinite(T_block), T_block, np.nan)  # the image shows the block, not the line
     assert size_spread(clear, "similarity", 0.2, image=shown) == pytest.approx(alone, rel=0.05)
     assert size_spread(clear, "similarity", 0.2, image=clear) < 0.5 * alone
+
+def test_a_line_that_barely_cured_is_placed_only_as_well_as_the_dose_is_known():
+    """A lone line in a batch of prints that cured well above the gel point: where the line
+    did too, a change of dose moves its edges as far as the batch's, and its spread is as
+    without the dose; where it barely cured, its ends move much further with the dose,
+    and so does where along its length it lies."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import dose_sensitivity, size_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    line = np.zeros((512, 512), np.uint8)
+    line[250:258, 60:460] = 255
+    B = tmpl.exposure(tmpl.padded(line), x)
+
+    def at(over):  # peak dose over the gel point
+        dose = over * x[1] / float(B.max())
+        T = tmpl.cure(B, x, dose)
+        return T, (tmpl.cure(B, x, dose * 1.02) - T) / np.log(1.02)
+
+    batch = dose_sensitivity(*at(4.0))
+    spreads = {}
+    for over in (1.05, 1.2, 4.0):
+        T, R = at(over)
+        spreads[over] = size_spread(T, "similarity", 0.2), size_spread(T, "similarity", 0.2, dose_response=R,
+                                                                       dose_reference=batch)
+    assert spreads[4.0][1] == pytest.approx(spreads[4.0][0], rel=0.1)
+    assert spreads[1.2][1] > 1.5 * spreads[1.2][0] and spreads[1.05][1] > 4 * spreads[1.05][0]
+
 
 def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():
     """A Siemens star is one feature: where its spoke tips lie against its spoke sides is

@@ -18,7 +18,7 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (Fit, coarse_candidates, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
+from .pose import (Fit, coarse_candidates, dose_sensitivity, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
@@ -463,8 +463,14 @@ def implausible(corr: dict, s: Settings) -> dict:
     if len(corr) < 3:
         return {}
     # pixel noise from the high-passed image (robust to how much of the field is print,
-    # unlike the background fit's residual), relative to the background level
-    noise = {k: 1.4826 * float(np.median(np.abs(c.c - cv2.GaussianBlur(c.c, (0, 0), 2.0)))) for k, c in corr.items()}
+    # unlike the background fit's residual), relative to the background level. Noise
+    # below one camera count is not resolved: an image of integers whose background
+    # sits a few counts above zero reads anywhere from 0 (every pixel the same count)
+    # to 0.74 counts (half one count, half the next), so noise is taken as at least one
+    # count. Without that floor, the 8-bit images of a lab whose background lay 4 to 5
+    # counts above zero read 0.03 to 0.39 counts, and two print images were called no print.
+    noise = {k: max(1.4826 * float(np.median(np.abs(c.c - cv2.GaussianBlur(c.c, (0, 0), 2.0)))), c.count)
+             for k, c in corr.items()}
     bg = {k: c.background for k, c in corr.items()}
     mn, mb = float(np.median(list(noise.values()))), float(np.median(list(bg.values())))
     f = s.implausible_factor
@@ -550,6 +556,18 @@ def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
     """The print template of one print: the batch's numbers with the print's own."""
     return print_template(tmpl, B, x, fit.q, derivatives=False)[0]
+
+
+DOSE_STEP = 0.02  # the relative dose step of ``dose_response``'s difference
+
+
+def dose_response(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit, T: np.ndarray | None = None) -> np.ndarray:
+    """dT / d ln(dose) of one print's template ``T`` (computed if not given): how its
+    edges move with the print's dose (``size_spread``), by a forward difference."""
+    T = predicted_print(tmpl, B, x, fit) if T is None else T
+    q = np.array(fit.q, dtype=float)
+    q[0] *= 1 + DOSE_STEP
+    return (print_template(tmpl, B, x, q, derivatives=False)[0] - T) / np.log1p(DOSE_STEP)
 
 
 def smoothing_px(scale: float) -> float:
@@ -861,9 +879,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     def free_spread(mid):
         f = choices[mid].fit
-        T = predicted_print(full, exposure_of(mid), x, f)
+        B = exposure_of(mid)
+        T = predicted_print(full, B, x, f)
+        R = dose_response(full, B, x, f, T)
         img = warp_to_design(smooth[mid], f.M, grid)
-        return T, size_spread(T, s.mode, image=imaged(mid, f, img)), edge_misfit(img, T, f)
+        return T, size_spread(T, s.mode, image=imaged(mid, f, img)), edge_misfit(img, T, f), R, dose_sensitivity(T, R)
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
     placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
@@ -872,7 +892,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
     place_sd, misfit = edge_place_sd([spreads[mid][2] for mid in placed_ids], s)
-    edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids))
+    # how far the dose moves the edges of the prints whose edges place_sd measures (9 in 10
+    # of each one's, the median print): an edge that it moves further is off by as much
+    # further (size_spread)
+    moved = [spreads[mid][4] for mid in placed_ids if np.isfinite(spreads[mid][4])]
+    dose_ref = float(np.median(moved)) if moved else None
+    edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids), dose_px=dose_ref)
     feature_sizes = dict(edge_offset=centre[0], edge_sd=edge_sd[0], prints=len(placed))
     log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix)", place_sd,
              "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids))
@@ -948,15 +973,17 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
-            f.size_sd = size_spread(predicted_print(full, B, x, f), s.mode, sd, held_at[1] if held_at else None, place_sd,
-                                    imaged(mid, f))
+            Tf = predicted_print(full, B, x, f)
+            f.size_sd = size_spread(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
+                                    dose_response(full, B, x, f, Tf), dose_ref)
             return f
 
         if edges or scaled:
             f = fit(held_scale if scaled else None)
         else:
             f = ch.fit
-            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f))
+            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f), dose_response=spreads[mid][3],
+                                   dose_reference=dose_ref)
         p = stated.get(mid)
         if (p is not None and held_stated is not None and not scaled and f.size_sd <= s.hold_size_sd
                 and np.isfinite(f.pose_sd)):
@@ -1023,7 +1050,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # the pose and its spread are the marks'; gain, offset and nuisance numbers stay the
         # whole print's (the marks' gain is that of three squares under an uneven stain)
         g = replace(f, M=g.M, pose_sd=g.pose_sd, converged=g.converged, iterations=g.iterations)
-        g.size_sd = size_spread(predicted_print(full, B_marks, x, g), s.mode, edge_sd, edge_sd=place_sd, image=imaged(mid, g))
+        Tg = predicted_print(full, B_marks, x, g)
+        g.size_sd = size_spread(Tg, s.mode, edge_sd, edge_sd=place_sd, image=imaged(mid, g),
+                                dose_response=dose_response(full, B_marks, x, g, Tg), dose_reference=dose_ref)
         log.info("%s: posed on its registration marks, %.2f px from the pose of the whole print (pose spread %.2f -> "
                  "%.2f px)", mid, d, f.pose_sd, g.pose_sd)
         return g

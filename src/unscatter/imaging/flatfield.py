@@ -74,6 +74,7 @@ class Corrected:
     noise: float  # noise of c in the background
     background: float  # median background (ADU above offset)
     raw_dtype: str
+    count: float = 0.0  # one camera count (ADU) in the units of c, at the median background
 
 
 def correct_image(mid: str, path: Path, offset: float, s, mode: str | None = None) -> Corrected:
@@ -86,12 +87,12 @@ def correct_image(mid: str, path: Path, offset: float, s, mode: str | None = Non
         mode = "divide" if bmed > s.min_background_snr * noise else "subtract"
     if mode == "divide":
         c = (img - B) / np.maximum(B, 0.2 * bmed)
-        n = noise / bmed
+        n, count = noise / bmed, 1.0 / max(bmed, 1e-12)
     else:
         scale = max(bmed, noise)
         c = (img - B) / scale
-        n = noise / scale
-    return Corrected(mid, c.astype(np.float32), float(n), bmed, str(raw.dtype))
+        n, count = noise / scale, 1.0 / scale
+    return Corrected(mid, c.astype(np.float32), float(n), bmed, str(raw.dtype), float(count))
 
 
 def dense_level(corrected: list[Corrected], s) -> tuple[float, float]:

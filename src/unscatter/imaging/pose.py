@@ -569,8 +569,22 @@ def edge_misfit(img: np.ndarray, T: np.ndarray, fit: "Fit") -> float:
     return float(np.sqrt(float(np.sum((img[win] - P[win]) ** 2)) / max(float(g2[win].sum()), 1e-12)))
 
 
+def _boundary(T: np.ndarray) -> tuple:
+    """The predicted print's boundary: its level (half its maximum), gradient (x, y,
+    magnitude), and the pixels within half a gradient step of the level, less those where
+    T falls off at under WEAK_EDGE of the boundary's median slope."""
+    lvl = 0.5 * float(T.max())
+    gy, gx = np.gradient(T.astype(np.float64))
+    g = np.hypot(gx, gy)
+    edge = (np.abs(T - lvl) <= 0.5 * g) & (g > 1e-9)
+    if edge.any():
+        edge &= g >= WEAK_EDGE * float(np.median(g[edge]))
+    return lvl, gx, gy, g, edge
+
+
 def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD,
-                image: np.ndarray | None = None) -> float:
+                image: np.ndarray | None = None, dose_response: np.ndarray | None = None,
+                dose_reference: float | None = None) -> float:
     """The pose's spread (px of ``T``'s grid, RMS over the field) when each feature of the
     predicted print ``T`` may be larger or smaller than predicted, more so across one
     direction than another: per feature an edge offset e0 + c2 cos 2t + s2 sin 2t +
@@ -608,16 +622,22 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     block and such a line count as several features whose places fix its scale, while
     the block's size set it (a lines print of seed 1443771177's lab 5, `ok` 2.4 px off
     with a size spread of 1.0 px: 26 predicted specks along its second line).
+
+    ``dose_response``: dT / d ln(dose) on ``T``'s grid (the template's change with the
+    print's dose), and ``dose_reference``: how far the dose moves the edges of the batch's
+    prints by which ``edge_sd`` was measured (``dose_sensitivity``: no further than that
+    for 9 in 10 of them; px per unit of ln dose). A boundary pixel that the dose moves s
+    times as far (s > 1) is off s times ``edge_sd``: cells scatter the light unevenly,
+    the lamp's field is known only so well, and the end of a line that barely cured
+    moves far with a small change of dose. A pose that rests on such edges (where along
+    their length lines lie) is known only that well: a lines print of seed 273897816's
+    lab 4 was `ok` 1.91 px off along its lines. The reference is not the median edge:
+    that failed a print of our own lab's default run 0.29 px off (README).
     """
     n = T.shape[0]
     c = (n - 1) / 2
     corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
-    lvl = 0.5 * float(T.max())
-    gy, gx = np.gradient(T.astype(np.float64))
-    g = np.hypot(gx, gy)
-    edge = (np.abs(T - lvl) <= 0.5 * g) & (g > 1e-9)
-    if edge.any():
-        edge &= g >= WEAK_EDGE * float(np.median(g[edge]))
+    lvl, gx, gy, g, edge = _boundary(T)
     ys, xs = np.nonzero(edge)
     if len(xs) < 10:
         return float("inf")
@@ -647,6 +667,13 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     c2, s2 = nx * nx - ny * ny, 2 * nx * ny
     Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
     v = edge_sd**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
+    w = np.ones(len(nx))
+    if dose_response is not None and dose_reference is not None and dose_reference > 0:
+        # each boundary pixel weighed by 1 / its place's variance, relative to v: the rows
+        # of P and Q (and the size column below) scaled by 1 / its sd over edge_sd
+        moved = np.abs(dose_response[ys, xs][keep]) / g[ys, xs][keep]
+        w = 1.0 / np.maximum(1.0, moved / dose_reference)
+        P, Q = P * w[:, None], Q * w[:, None]
     if offset_sd is None:
         prior = np.zeros((6, 6))
     else:
@@ -658,7 +685,7 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     bounds = np.flatnonzero(np.diff(k[order])) + 1
     for idx in np.split(order, bounds):
         dx, dy = X[idx] - X[idx].mean(), Y[idx] - Y[idx].mean()
-        size = (nx[idx] * dx + ny[idx] * dy) / max(float(np.sqrt(np.mean(dx * dx + dy * dy))), 1.0)
+        size = w[idx] * (nx[idx] * dx + ny[idx] * dy) / max(float(np.sqrt(np.mean(dx * dx + dy * dy))), 1.0)
         Pk, Qk = P[idx], np.column_stack([Q[idx], size])
         Apq = Pk.T @ Qk
         S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior, rcond=1e-8, hermitian=True) @ Apq.T
@@ -668,6 +695,20 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
         S += v * np.outer(a, a) / scale_sd**2
     S[np.diag_indices_from(S)] += 1e-9 * np.trace(P.T @ P) / len(S)
     return min(_field_rms(np.linalg.inv(S) * v, mode, corners), 1e6)
+
+
+DOSE_QUANTILE = 0.9  # dose_sensitivity: the share of a print's boundary that its dose moves no further
+
+
+def dose_sensitivity(T: np.ndarray, dose_response: np.ndarray) -> float:
+    """How far the edges of the predicted print ``T`` move with its dose: the DOSE_QUANTILE
+    quantile over its boundary (T at half its maximum, as ``size_spread``) of
+    |dT / d ln(dose)| / |grad T| (grid px per unit of ln dose); NaN where it has no
+    boundary."""
+    _, _, _, g, edge = _boundary(T)
+    if edge.sum() < 10:
+        return float("nan")
+    return float(np.quantile(np.abs(dose_response[edge]) / g[edge], DOSE_QUANTILE))
 
 
 def merged_features(T: np.ndarray, m: np.ndarray, fill: float = 1.5) -> bool:
