@@ -563,11 +563,13 @@ DOSE_STEP = 0.02  # the relative dose step of ``dose_response``'s difference
 
 def dose_response(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit, T: np.ndarray | None = None) -> np.ndarray:
     """dT / d ln(dose) of one print's template ``T`` (computed if not given): how its
-    edges move with the print's dose (``size_spread``), by a forward difference."""
+    edges move with the print's dose (``size_spread``), by a forward difference through
+    the same template (``print_template``'s analytic dose derivative leaves out the edge
+    offsets and costs an image more), in T's dtype: the batch keeps one per print."""
     T = predicted_print(tmpl, B, x, fit) if T is None else T
     q = np.array(fit.q, dtype=float)
     q[0] *= 1 + DOSE_STEP
-    return (print_template(tmpl, B, x, q, derivatives=False)[0] - T) / np.log1p(DOSE_STEP)
+    return (print_template(tmpl, B, x, q, derivatives=False)[0] - T) / float(np.log1p(DOSE_STEP))
 
 
 def smoothing_px(scale: float) -> float:

@@ -74,7 +74,7 @@ class Corrected:
     noise: float  # noise of c in the background
     background: float  # median background (ADU above offset)
     raw_dtype: str
-    count: float = 0.0  # one camera count (ADU) in the units of c, at the median background
+    count: float  # one camera count (ADU) in the units of c, at the median background
 
 
 def correct_image(mid: str, path: Path, offset: float, s, mode: str | None = None) -> Corrected:
