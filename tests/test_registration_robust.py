@@ -4,6 +4,7 @@ images that are no prints, and pose priors from metadata."""
 import shutil
 
 import numpy as np
+from scipy import ndimage
 import pytest
 import tifffile
 
@@ -453,6 +454,78 @@ def test_a_line_that_barely_cured_is_placed_only_as_well_as_the_dose_is_known():
                                                                        dose_reference=batch)
     assert spreads[4.0][1] == pytest.approx(spreads[4.0][0], rel=0.1)
     assert spreads[1.2][1] > 1.5 * spreads[1.2][0] and spreads[1.05][1] > 4 * spreads[1.05][0]
+
+
+def test_two_features_whose_edges_the_dose_moves_far_fix_the_scale_only_as_well_as_their_places():
+    """Two dots far apart set a print's scale by where they lie. Where they barely cured,
+    a few % more dose on one side of a dot moves it as a whole (``place_dose_sd``), and the
+    scale is known only that well, however long their edges, even in a batch whose prints
+    all barely cured (so that no edge of this one moves further than the batch's and the
+    per-pixel weights leave it as it is); large blocks that cured well above the gel point
+    are placed almost as before."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import dose_sensitivity, size_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    yy, xx = np.mgrid[:512, :512]
+    dots = (((yy - 256) ** 2 + (xx - 100) ** 2 < 12**2) | ((yy - 256) ** 2 + (xx - 420) ** 2 < 12**2)).astype(np.uint8) * 255
+    blocks = np.zeros((512, 512), np.uint8)
+    blocks[100:200, 100:200] = blocks[300:420, 280:400] = 255
+
+    def spreads(mask, over):  # over: the peak dose over the gel point, this print's and the batch's
+        B = tmpl.exposure(tmpl.padded(mask), x)
+        dose = over * x[1] / float(B.max())
+        T = tmpl.cure(B, x, dose)
+        R = (tmpl.cure(B, x, dose * 1.02) - T) / np.log(1.02)
+        ref = dose_sensitivity(T, R)
+        return [size_spread(T, "similarity", 0.2, dose_response=R, dose_reference=ref, place_dose_sd=c) for c in (0.0, 0.02)]
+
+    alone, placed = spreads(dots, 1.1)
+    assert placed > 1.5 * alone and placed > 1.5  # fails QC's 1.5 px; the pixels alone pass it
+    alone, placed = spreads(blocks, 4.0)
+    assert placed < 1.3 * alone
+
+
+def test_the_batch_measures_how_far_its_features_sit_off_their_places():
+    """Features moved off their predicted places by a few px, in proportion to how far the
+    dose moves their edges, are measured as such; features where they belong, under noise,
+    as (nearly) not moved: the measurement takes out what the noise and the pose explain."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import feature_places, place_dose_spread
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    x = np.array(PrintTemplate.START)
+    rng = np.random.default_rng(5)
+    mask = np.zeros((512, 512), np.uint8)
+    centres = [(cy, cx) for cy in (100, 256, 412) for cx in (100, 256, 412)]
+    for cy, cx in centres:
+        mask[cy - 30:cy + 30, cx - 30:cx + 30] = 255
+    B = tmpl.exposure(tmpl.padded(mask), x)
+    dose = 1.5 * x[1] / float(B.max())
+    T = tmpl.cure(B, x, dose)
+    R = (tmpl.cure(B, x, dose * 1.02) - T) / np.log(1.02)
+    noise = 0.01
+
+    def image(shifts):
+        img = T.copy()
+        for (cy, cx), (dy, dx) in zip(centres, shifts):
+            sl = np.s_[MARGIN + cy - 60:MARGIN + cy + 60, MARGIN + cx - 60:MARGIN + cx + 60]
+            img[sl] = ndimage.shift(T, (dy, dx), order=1)[sl]
+        return img + rng.normal(0, noise, T.shape)
+
+    # the noise of a boundary pixel's place: noise over the edge's slope, one per EDGE_CORR_PX
+    edge_sd = 0.05
+    still = [feature_places(image([(0, 0)] * 9), T, R) for _ in range(4)]
+    c_still, n = place_dose_spread(still, edge_sd)
+    moved = still[0][:, 1]
+    c = 0.05
+    off = [feature_places(image([tuple(rng.normal(0, c * m, 2)) for m in moved]), T, R) for _ in range(4)]
+    c_off, _ = place_dose_spread(off, edge_sd)
+    assert n == 36 and c_still < 0.01
+    assert 0.5 * c < c_off < 2 * c
 
 
 def test_a_star_is_one_feature_and_its_scale_rests_on_its_size():

@@ -18,7 +18,7 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (Fit, coarse_candidates, dose_sensitivity, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
+from .pose import (Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
@@ -885,7 +885,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         T = predicted_print(full, B, x, f)
         R = dose_response(full, B, x, f, T)
         img = warp_to_design(smooth[mid], f.M, grid)
-        return T, size_spread(T, s.mode, image=imaged(mid, f, img)), edge_misfit(img, T, f), R, dose_sensitivity(T, R)
+        seen = imaged(mid, f, img)
+        return (T, size_spread(T, s.mode, image=seen), edge_misfit(img, T, f), R, dose_sensitivity(T, R),
+                feature_places(seen, T, R) if seen is not None else np.zeros((0, 3)))
 
     spreads = dict(zip(todo, pool.map(free_spread, todo)))
     placed_ids = [mid for mid in todo if determined(choices[mid], s) and spreads[mid][1] <= s.max_pose_sd]
@@ -899,10 +901,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # further (size_spread)
     moved = [spreads[mid][4] for mid in placed_ids if np.isfinite(spreads[mid][4])]
     dose_ref = float(np.median(moved)) if moved else None
-    edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids), dose_px=dose_ref)
+    # how far the features of those prints sit off their places, per unit of how far the
+    # dose moves their edges: each feature of every print may be off by as much (size_spread)
+    place_dose, place_features = place_dose_spread([spreads[mid][5] for mid in placed_ids], place_sd)
+    edge_places = dict(sd=place_sd, median_misfit=misfit, prints=len(placed_ids), dose_px=dose_ref,
+                       feature_place_dose=place_dose, feature_place_features=place_features)
     feature_sizes = dict(edge_offset=centre[0], edge_sd=edge_sd[0], prints=len(placed))
-    log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix)", place_sd,
-             "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids))
+    log.info("edge places: off by %.2f px (median misfit %s of %d prints whose pose their features' places fix); "
+             "their %d features off their places by %.3f of how far the dose moves their edges", place_sd,
+             "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids), place_features, place_dose)
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
     one_scale = batch_scale(placed, s)
     held_scale = None if one_scale is None else one_magnification_held(one_scale, len(placed), s)
@@ -952,8 +959,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         spread says (0.7 % for two rectangles prints of seed 3297061028, 1.9 and 2.4 px).
 
         A stated camera pixel size (``stated_scales``) holds the scale in the same way,
-        but only for a print whose scale trades against its features' size (its size
-        spread over ``hold_size_sd``, and where it is below the limit, its own scale
+        but only for a print whose scale trades against its features' size (its spread
+        from their sizes alone, ``Fit.sizes_sd``, without their own places, over
+        ``hold_size_sd``, and where it is below the limit, its own scale
         within ``scale_sigmas`` spreads of the stated one) while its data nearly fix the
         rest of its pose (its pose spread within 1.5 times the limit, which the scale's
         trade inflates for one block; a grating loose along its lines stays failed), and
@@ -976,18 +984,20 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
             Tf = predicted_print(full, B, x, f)
-            f.size_sd = size_spread(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
-                                    dose_response(full, B, x, f, Tf), dose_ref)
+            args = (Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
+                    dose_response(full, B, x, f, Tf), dose_ref)
+            f.size_sd, f.sizes_sd = size_spread(*args, place_dose), size_spread(*args)
             return f
 
         if edges or scaled:
             f = fit(held_scale if scaled else None)
         else:
             f = ch.fit
-            f.size_sd = size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f), dose_response=spreads[mid][3],
-                                   dose_reference=dose_ref)
+            f.size_sd, f.sizes_sd = (size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f),
+                                                 dose_response=spreads[mid][3], dose_reference=dose_ref, place_dose_sd=c)
+                                     for c in (place_dose, 0.0))
         p = stated.get(mid)
-        if (p is not None and held_stated is not None and not scaled and f.size_sd <= s.hold_size_sd
+        if (p is not None and held_stated is not None and not scaled and f.sizes_sd <= s.hold_size_sd
                 and np.isfinite(f.pose_sd)):
             # the batch's prints scatter about their stated sizes more than they should, and
             # its template misplaces their edges (stated_scatter): the stated size holds the
@@ -1019,10 +1029,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # evidence of a wrong pose, which holding would hide: a grey ramp of seed
         # 1767693049 passed 2.6 px off, its free scale 0.4 % off, 4.1 times the spread)
         if (p is not None and (held_scale is None or p[1] < held_scale[1]) and f.pose_sd <= 1.5 * s.max_pose_sd
-                and (f.size_sd > s.max_size_sd
-                     or (f.size_sd > s.hold_size_sd and abs(log_scale(f.M) - p[0]) <= s.scale_sigmas * p[1]))):
+                and (f.sizes_sd > s.max_size_sd
+                     or (f.sizes_sd > s.hold_size_sd and abs(log_scale(f.M) - p[0]) <= s.scale_sigmas * p[1]))):
             g = fit(p)
-            if max(g.pose_sd / s.max_pose_sd, g.size_sd / s.max_size_sd) < max(f.pose_sd / s.max_pose_sd, f.size_sd / s.max_size_sd):
+            if max(g.pose_sd / s.max_pose_sd, g.sizes_sd / s.max_size_sd) < max(f.pose_sd / s.max_pose_sd, f.sizes_sd / s.max_size_sd):
                 log.info("%s: held to its stated camera pixel size: pose spread %.2f -> %.2f px, size spread %.2f -> %.2f px",
                          mid, f.pose_sd, g.pose_sd, f.size_sd, g.size_sd)
                 f = g
@@ -1054,7 +1064,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         g = replace(f, M=g.M, pose_sd=g.pose_sd, converged=g.converged, iterations=g.iterations)
         Tg = predicted_print(full, B_marks, x, g)
         g.size_sd = size_spread(Tg, s.mode, edge_sd, edge_sd=place_sd, image=imaged(mid, g),
-                                dose_response=dose_response(full, B_marks, x, g, Tg), dose_reference=dose_ref)
+                                dose_response=dose_response(full, B_marks, x, g, Tg), dose_reference=dose_ref,
+                                place_dose_sd=place_dose)
         log.info("%s: posed on its registration marks, %.2f px from the pose of the whole print (pose spread %.2f -> "
                  "%.2f px)", mid, d, f.pose_sd, g.pose_sd)
         return g

@@ -224,6 +224,9 @@ class Fit:
     converged: bool
     iterations: int
     size_sd: float = float("nan")  # pose spread from the print's size not being known (design px; set by the batch)
+    # the same without its features' own places (size_spread's place_dose_sd): how far the
+    # pose rests on its features' sizes alone, which decides how a stated pixel size holds it
+    sizes_sd: float = float("nan")
     joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
@@ -584,7 +587,7 @@ def _boundary(T: np.ndarray) -> tuple:
 
 def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD,
                 image: np.ndarray | None = None, dose_response: np.ndarray | None = None,
-                dose_reference: float | None = None) -> float:
+                dose_reference: float | None = None, place_dose_sd: float = 0.0) -> float:
     """The pose's spread (px of ``T``'s grid, RMS over the field) when each feature of the
     predicted print ``T`` may be larger or smaller than predicted, more so across one
     direction than another: per feature an edge offset e0 + c2 cos 2t + s2 sin 2t +
@@ -633,6 +636,18 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     their length lines lie) is known only that well: a lines print of seed 273897816's
     lab 4 was `ok` 1.91 px off along its lines. The reference is not the median edge:
     that failed a print of our own lab's default run 0.29 px off (README).
+
+    ``place_dose_sd``: each feature may also sit off its predicted place as a whole, by
+    this times the median over its boundary of how far the dose moves its edges (a
+    translation of the feature, marginalised with its offsets; needs ``dose_response``):
+    the dose differs from one side of a feature to the other (the lamp's field and the
+    cells' scatter, known only so well), which moves the feature's edges on that side
+    further than those on the other. The per-pixel weights above do not hold this: a
+    feature's place from a long edge is known to the noise's share of a pixel, however far
+    the dose moves it. A print of two features then has its scale known only as well as
+    their places (a lines print of seed 235706131's lab 7, of which two lines cured, was
+    `ok` 1.88 px off in scale, 0.85 %, at a size spread of 0.72 px). The batch measures it
+    on its well-placed prints (``feature_places``); 0 leaves it out.
     """
     n = T.shape[0]
     c = (n - 1) / 2
@@ -668,6 +683,7 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     Q = np.stack([np.ones_like(nx), c2, s2, c2 * c2 - s2 * s2, 2 * c2 * s2], 1)
     v = edge_sd**2 * EDGE_CORR_PX  # variance of one boundary pixel's place (it counts for 1 / EDGE_CORR_PX of one)
     w = np.ones(len(nx))
+    moved = None  # px per unit of ln dose, per boundary pixel
     if dose_response is not None and dose_reference is not None and dose_reference > 0:
         # each boundary pixel weighed by 1 / its place's variance, relative to v: the rows
         # of P and Q (and the size column below) scaled by 1 / its sd over edge_sd
@@ -686,15 +702,79 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     for idx in np.split(order, bounds):
         dx, dy = X[idx] - X[idx].mean(), Y[idx] - Y[idx].mean()
         size = w[idx] * (nx[idx] * dx + ny[idx] * dy) / max(float(np.sqrt(np.mean(dx * dx + dy * dy))), 1.0)
-        Pk, Qk = P[idx], np.column_stack([Q[idx], size])
+        Pk, Qk, prior_k = P[idx], np.column_stack([Q[idx], size]), prior
+        place_sd = 0.0 if moved is None else place_dose_sd * float(np.median(moved[idx]))
+        if place_sd > 1e-3:  # the feature's own translation, of that spread
+            Qk = np.column_stack([Qk, w[idx] * nx[idx], w[idx] * ny[idx]])
+            prior_k = np.pad(prior, ((0, 2), (0, 2)))
+            prior_k[6:, 6:] = np.eye(2) * v / place_sd**2
         Apq = Pk.T @ Qk
-        S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior, rcond=1e-8, hermitian=True) @ Apq.T
+        S -= Apq @ np.linalg.pinv(Qk.T @ Qk + prior_k, rcond=1e-8, hermitian=True) @ Apq.T
     S = 0.5 * (S + S.T)
     if scale_sd is not None:
         a = _log_scale_row(len(S), mode)
         S += v * np.outer(a, a) / scale_sd**2
     S[np.diag_indices_from(S)] += 1e-9 * np.trace(P.T @ P) / len(S)
     return min(_field_rms(np.linalg.inv(S) * v, mode, corners), 1e6)
+
+
+FEATURE_MIN_EDGE = 40  # feature_places: boundary pixels a feature needs for its place to count
+
+
+def feature_places(image: np.ndarray, T: np.ndarray, dose_response: np.ndarray) -> np.ndarray:
+    """How far each feature of the predicted print ``T`` sits off its predicted place in
+    ``image`` (on ``T``'s grid in ``T``'s units, NaN outside it; ``size_spread``'s), and how
+    far the dose moves its edges. Per feature of at least FEATURE_MIN_EDGE boundary pixels
+    (features as ``size_spread``'s), the translation t that best moves T's edges onto the
+    image's (least squares on the residual image - T against grad T within 3 px of its
+    boundary), the median over its boundary of |dT / d ln dose| / |grad T| (px per unit
+    of ln dose), and its number of boundary pixels: an array of rows (|t|^2, moved,
+    pixels); none where ``T`` has fewer than 3 features (``place_dose_spread``)."""
+    lvl, gx, gy, g, edge = _boundary(T)
+    lab, count = ndimage.label(T >= lvl)
+    none = np.zeros((0, 3))
+    if count < 3:
+        return none
+    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+    near = lab[iy, ix]  # every pixel's nearest feature
+    band = (cv2.dilate(edge.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & np.isfinite(image)
+    r = np.where(band, image - T, 0.0)
+    k = np.where(band, near, 0).ravel()
+    n = count + 1
+    sxx, sxy, syy = (np.bincount(k, (a * b).ravel(), n) for a, b in ((gx, gx), (gx, gy), (gy, gy)))
+    sxr, syr = (np.bincount(k, (a * r).ravel(), n) for a in (gx, gy))
+    ke = near[edge]
+    nedge = np.bincount(ke, minlength=n)
+    moved = np.abs(dose_response[edge]) / g[edge]
+    rows = []
+    for f in np.flatnonzero(nedge >= FEATURE_MIN_EDGE):
+        det = sxx[f] * syy[f] - sxy[f] ** 2
+        if f == 0 or det <= 1e-9 * sxx[f] * syy[f]:
+            continue
+        tx = -(syy[f] * sxr[f] - sxy[f] * syr[f]) / det
+        ty = -(sxx[f] * syr[f] - sxy[f] * sxr[f]) / det
+        rows.append((tx * tx + ty * ty, float(np.median(moved[ke == f])), nedge[f]))
+    return np.array(rows) if len(rows) >= 3 else none
+
+
+def place_dose_spread(places: list, edge_sd: float) -> tuple[float, int]:
+    """``size_spread``'s ``place_dose_sd`` from ``feature_places`` of a batch's well-placed
+    prints: c, the standard deviation per axis of a feature's displacement over how far the
+    dose moves its edges. Per feature q = (|t|^2 / 2 - 2 v / n) / moved^2 (v = edge_sd^2
+    EDGE_CORR_PX: the noise of t per axis is 2 v / n for n boundary pixels, half of them
+    across each axis), of which c^2 is the median over ln 2 (|t|^2 / 2 of a Gaussian
+    displacement is exponential: one feature that the template misses, a part of a
+    partial print that did not cure, does not set it), times the features' count over the
+    count less 2 per print (the pose, fitted to the same image, takes 4 of the 2 numbers
+    each feature of a print gives: its shift, rotation and scale). Returns (c, features);
+    (0, 0) without any."""
+    rows = [p for p in places if len(p)]
+    if not rows:
+        return 0.0, 0
+    v = edge_sd**2 * EDGE_CORR_PX
+    q = np.concatenate([(p[:, 0] / 2 - 2 * v / p[:, 2]) / np.maximum(p[:, 1], 1e-6) ** 2 for p in rows])
+    dof = len(q) / sum(len(p) - 2 for p in rows)
+    return float(np.sqrt(max(float(np.median(q)), 0.0) / np.log(2) * dof)), len(q)
 
 
 DOSE_QUANTILE = 0.9  # dose_sensitivity: the share of a print's boundary that its dose moves no further
