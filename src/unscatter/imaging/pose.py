@@ -585,6 +585,17 @@ def _boundary(T: np.ndarray) -> tuple:
     return lvl, gx, gy, g, edge
 
 
+def _features(T: np.ndarray, lvl: float) -> tuple:
+    """The predicted print's features (4-connected parts of T at or above ``lvl``): their
+    labels, count, and every pixel's nearest feature (boundary pixels just outside the
+    print belong to it)."""
+    lab, count = ndimage.label(T >= lvl)
+    if count == 0:
+        return lab, 0, lab
+    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
+    return lab, count, lab[iy, ix]
+
+
 def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD,
                 image: np.ndarray | None = None, dose_response: np.ndarray | None = None,
                 dose_reference: float | None = None, place_dose_sd: float = 0.0) -> float:
@@ -662,12 +673,10 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
         P = np.stack([nx * X, nx * Y, ny * X, ny * Y, nx, ny], 1)
     else:
         P = np.stack([nx * X + ny * Y, ny * X - nx * Y, nx, ny], 1)
-    lab, count = ndimage.label(T >= lvl)
+    lab, count, near = _features(T, lvl)
     if count == 0:
         return float("inf")
-    # boundary pixels just outside the print belong to the nearest feature
-    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-    k = lab[iy[ys, xs], ix[ys, xs]]
+    k = near[ys, xs]
     labels = np.arange(1, count + 1)
     # features that surely print: a peak of at least MARGINAL_PEAK x the level (any pixel there, counted by
     # label; ndimage.maximum sorts the labels, 50 ms a call on a grating's hundreds of features)
@@ -731,12 +740,10 @@ def feature_places(image: np.ndarray, T: np.ndarray, dose_response: np.ndarray) 
     of ln dose), and its number of boundary pixels: an array of rows (|t|^2, moved,
     pixels); none where ``T`` has fewer than 3 features (``place_dose_spread``)."""
     lvl, gx, gy, g, edge = _boundary(T)
-    lab, count = ndimage.label(T >= lvl)
+    _, count, near = _features(T, lvl)
     none = np.zeros((0, 3))
     if count < 3:
         return none
-    _, (iy, ix) = ndimage.distance_transform_edt(lab == 0, return_indices=True)
-    near = lab[iy, ix]  # every pixel's nearest feature
     band = (cv2.dilate(edge.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0) & np.isfinite(image)
     r = np.where(band, image - T, 0.0)
     k = np.where(band, near, 0).ravel()
@@ -749,7 +756,7 @@ def feature_places(image: np.ndarray, T: np.ndarray, dose_response: np.ndarray) 
     rows = []
     for f in np.flatnonzero(nedge >= FEATURE_MIN_EDGE):
         det = sxx[f] * syy[f] - sxy[f] ** 2
-        if f == 0 or det <= 1e-9 * sxx[f] * syy[f]:
+        if det <= 1e-9 * sxx[f] * syy[f]:
             continue
         tx = -(syy[f] * sxr[f] - sxy[f] * syr[f]) / det
         ty = -(sxx[f] * syr[f] - sxy[f] * sxr[f]) / det
@@ -765,8 +772,8 @@ def place_dose_spread(places: list, edge_sd: float) -> tuple[float, int]:
     across each axis), of which c^2 is the median over ln 2 (|t|^2 / 2 of a Gaussian
     displacement is exponential: one feature that the template misses, a part of a
     partial print that did not cure, does not set it), times the features' count over the
-    count less 2 per print (the pose, fitted to the same image, takes 4 of the 2 numbers
-    each feature of a print gives: its shift, rotation and scale). Returns (c, features);
+    count less 2 per print (the pose, fitted to the same image, takes 4 of the 2 n numbers
+    that the n features of a print give: its shift, rotation and scale). Returns (c, features);
     (0, 0) without any."""
     rows = [p for p in places if len(p)]
     if not rows:
