@@ -1197,3 +1197,22 @@ def test_the_evidence_clips_at_the_level_of_the_print_not_of_its_area():
         levels.append(print_level(fit, T))
         assert 0.5 * 2.0 * T.max() < levels[-1] <= 2.0 * T.max()
     assert abs(levels[0] / levels[1] - 1) < 0.1, levels
+
+
+def test_a_batch_too_small_to_measure_its_size_error_says_so(tmp_path, trial_dir, caplog):
+    """A batch measures how far its template's feature sizes are off on its prints whose
+    features' places fix their pose; with fewer than ``size_min_prints`` of them it can
+    only assume it, and says so (README, "Small batches")."""
+    from unscatter.imaging.batch import Settings
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    for name in ("trial_000.png", "trial_001.png"):
+        shutil.copy(trial_dir / name, masks / name)
+    print_batch(masks, tmp_path / "batch", seed=4, progress=False)
+    with caplog.at_level("WARNING", logger="unscatter.imaging.batch"):
+        register_batch(tmp_path / "batch", tmp_path / "reg", skip_failed=True, progress=False)
+    measured = read_yaml(tmp_path / "reg" / "registration.yaml")["feature_sizes"]
+    assert measured["prints"] < Settings().size_min_prints and measured["edge_sd"] == Settings().size_sd
+    assert f"only {measured['prints']} prints of 2 have a pose that their features' places fix" in caplog.text
+    assert "register more prints together, or state the camera pixel size" in caplog.text

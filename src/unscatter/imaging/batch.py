@@ -895,6 +895,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     centre, edge_sd = size_error(placed, s)
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
+    if len(placed) < s.size_min_prints:
+        # a small batch: its template's size error is assumed, not measured (README, "Small batches"); prints
+        # whose scale rests on their features' sizes are then held by an assumption the batch cannot check
+        log.warning("only %d prints of %d have a pose that their features' places fix (%d needed to measure how far "
+                    "the template's feature sizes are off): feature sizes are assumed right within %.1f px, and a print "
+                    "whose scale rests on them is less sure than its spread says; register more prints together, or "
+                    "state the camera pixel size", len(placed), len(todo), s.size_min_prints, s.size_sd)
     place_sd, misfit = edge_place_sd([spreads[mid][2] for mid in placed_ids], s)
     # how far the dose moves the edges of the prints whose edges place_sd measures (9 in 10
     # of each one's, the median print): an edge that it moves further is off by as much
