@@ -82,7 +82,7 @@ class Settings:
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
-    template_min_prints: int = 5  # prints whose poses no rival contests, that the template is fitted on again (step
+    template_min_prints: int = 3  # prints whose poses no rival contests, that the template is fitted on again (step
     template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
