@@ -753,8 +753,6 @@ def test_a_small_batch_fits_its_template_again_at_the_poses_it_trusts(tmp_path):
     too wide, and only 4 poses are uncontested. The template is fitted again at those 4
     (``template_min_prints`` 3; it was 5, and this batch kept the first template: 1 print
     ok, 1.0 px off), and 2 prints are ok, each within 1 px of its true pose."""
-    from unscatter.io import read_yaml
-
     for k, mask in list(patterns.trial_masks(12, seed=11).items())[:5]:
         write_png(tmp_path / "masks" / f"{k}.png", mask)
     print_batch(tmp_path / "masks", tmp_path / "batch", overrides=ANISOTROPIC_LAB, seed=4, progress=False)
@@ -1221,7 +1219,7 @@ def test_the_evidence_clips_at_the_level_of_the_print_not_of_its_area():
 def test_a_batch_too_small_to_measure_its_size_error_says_so(tmp_path, trial_dir, caplog):
     """A batch measures how far its template's feature sizes are off on its prints whose
     features' places fix their pose; with fewer than ``size_min_prints`` of them it can
-    only assume it, and says so (README, "Small batches")."""
+    only assume it, and says so (README, "Small registration batches")."""
     from unscatter.imaging.batch import Settings
 
     masks = tmp_path / "masks"
@@ -1231,7 +1229,8 @@ def test_a_batch_too_small_to_measure_its_size_error_says_so(tmp_path, trial_dir
     print_batch(masks, tmp_path / "batch", seed=4, progress=False)
     with caplog.at_level("WARNING", logger="unscatter.imaging.batch"):
         register_batch(tmp_path / "batch", tmp_path / "reg", skip_failed=True, progress=False)
-    measured = read_yaml(tmp_path / "reg" / "registration.yaml")["feature_sizes"]
-    assert measured["prints"] < Settings().size_min_prints and measured["edge_sd"] == Settings().size_sd
-    assert f"only {measured['prints']} prints of 2 have a pose that their features' places fix" in caplog.text
-    assert "register more prints together, or state the camera pixel size" in caplog.text
+    s = Settings()
+    measured = read_yaml(tmp_path / "reg" / "registration.yaml")["feature_sizes"]["prints"]
+    assert f"prints whose pose their features' places fix: {measured} of 2, fewer than the {s.size_min_prints} needed" in caplog.text
+    assert f"assumed right within {s.size_sd:.1f} px" in caplog.text
+    assert "Register the prints of one printer and microscope together, or state the camera pixel size" in caplog.text

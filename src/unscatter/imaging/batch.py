@@ -895,13 +895,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     centre, edge_sd = size_error(placed, s)
     log.info("feature sizes: edge offset %.2f +- %.2f px, across directions %.2f +- %.2f px (from %d prints whose pose "
              "their features' places fix)", centre[0], edge_sd[0], np.hypot(centre[1], centre[2]), edge_sd[1], len(placed))
-    if len(placed) < s.size_min_prints:
-        # a small batch: its template's size error is assumed, not measured (README, "Small batches"); prints
-        # whose scale rests on their features' sizes are then held by an assumption the batch cannot check
-        log.warning("only %d prints of %d have a pose that their features' places fix (%d needed to measure how far "
-                    "the template's feature sizes are off): feature sizes are assumed right within %.1f px, and a print "
-                    "whose scale rests on them is less sure than its spread says; register more prints together, or "
-                    "state the camera pixel size", len(placed), len(todo), s.size_min_prints, s.size_sd)
     place_sd, misfit = edge_place_sd([spreads[mid][2] for mid in placed_ids], s)
     # how far the dose moves the edges of the prints whose edges place_sd measures (9 in 10
     # of each one's, the median print): an edge that it moves further is off by as much
@@ -927,6 +920,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     placed_scales = {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}
     stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo}, placed_scales, s)
+    if len(placed) < s.size_min_prints:
+        # a small batch: its template's size error is assumed, not measured (README, "Small registration batches"):
+        # the size spread of every print (size_spread) and the erosion of the faint test (5e) rest on size_sd,
+        # which the batch cannot check
+        log.warning("prints whose pose their features' places fix: %d of %d, fewer than the %d needed to measure how "
+                    "far the template's feature sizes are off; they are assumed right within %.1f px, and a print whose "
+                    "scale rests on them may be less sure than its spread says. Register the prints of one printer and "
+                    "microscope together%s", len(placed), len(todo), s.size_min_prints, s.size_sd,
+                    "" if stated else ", or state the camera pixel size")
     scatter = stated_scatter(stated, placed_scales, {mid: choices[mid].fit.pose_sd for mid in placed_ids}, design_px,
                              misfit, s)
     held_stated = scatter["held_within"] if scatter else None
