@@ -19,8 +19,9 @@ patterns of ``unscatter.masks.TEST_PATTERNS``, the paper's families included), r
 each batch as the workflow does (skipping failed prints) and scores every print against
 the lab's truth. ``--masks pool`` or ``--masks marked`` prints the trial-mask design's
 candidates instead (``unscatter.design.candidate_pool``), without or with their
-registration marks: the same labs and candidates for the same seed, so the two runs
-measure what the marks do. Without ``--seed`` each run draws new labs; the seed it drew is printed
+registration marks, and ``--masks paper`` or ``--masks paper-marked`` the paper's random
+trial masks (``unscatter.masks.trial_masks``) without or with them: the same labs and
+masks for the same seed, so the two runs measure what the marks do. Without ``--seed`` each run draws new labs; the seed it drew is printed
 and ``--seed S`` repeats the run. Labs run one after another (registration itself uses
 the two cores). Writes ``prints.tsv`` (one row per print), ``labs.yaml`` (each lab's
 config overrides), ``summary.txt`` (what is printed) and ``worst.png`` (the overlays of
@@ -152,13 +153,19 @@ def _substream(seed: int, lab: int, what: int) -> int:
 
 
 def lab_masks(kind: str, count: int, seed: int) -> dict:
-    """id -> mask: test patterns (``unscatter.masks.test_pattern_masks``), or candidates of
-    the trial-mask design's pool (``unscatter.design.candidate_pool``) without ("pool") or
-    with their registration marks ("marked")."""
+    """id -> mask: test patterns (``unscatter.masks.test_pattern_masks``), the paper's random
+    trial masks (``unscatter.masks.trial_masks``) without ("paper") or with the registration
+    marks ("paper-marked", ``trial_masks.paper_fiducials``), or candidates of the trial-mask
+    design's pool (``unscatter.design.candidate_pool``) without ("pool") or with them ("marked")."""
     if kind == "test":
         from unscatter.masks import test_pattern_masks
 
         return test_pattern_masks(count, seed=seed)
+    if kind in ("paper", "paper-marked"):
+        from unscatter.masks import trial_masks, with_fiducials
+
+        masks = trial_masks(count, seed=seed)
+        return {k: with_fiducials(m) for k, m in masks.items()} if kind == "paper-marked" else masks
     from unscatter.design import candidate_pool
 
     return candidate_pool(count, seed=seed, fiducials=kind == "marked")
@@ -491,9 +498,10 @@ def main():
     ap.add_argument("--lab-config", type=Path, help="overrides of the default lab (one lab)")
     ap.add_argument("--labs", type=int, default=0, help="number of random labs (0: one lab)")
     ap.add_argument("--prints", type=int, default=32, help="test prints per random lab")
-    ap.add_argument("--masks", choices=("test", "pool", "marked"), default="test",
-                    help="random labs: test patterns, or the trial-mask design's candidates without (pool) or with "
-                         "(marked) their registration marks")
+    ap.add_argument("--masks", choices=("test", "paper", "paper-marked", "pool", "marked"), default="test",
+                    help="random labs: test patterns; the paper's random trial masks without (paper) or with "
+                         "(paper-marked) the registration marks; or the trial-mask design's candidates without (pool) "
+                         "or with (marked) them")
     ap.add_argument("--threads", type=int, default=2, help="registration threads (the workflow uses 2)")
     ap.add_argument("--reprint", type=Path, help="a lab folder of a --labs run: print it again with --set changes")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",

@@ -94,3 +94,24 @@ def test_partial_and_near_threshold_doses():
         assert on.max() >= 190 and on.min() <= 100  # the dose falls across the pattern
         g = np.unique(masks.near_threshold(np.random.default_rng(s)))
         assert len(g) == 2 and 90 <= g[1] <= 150
+
+
+def test_the_papers_trial_masks_carry_the_registration_marks_only_when_asked(tmp_path):
+    """``unscatter masks trial --fiducials`` (``trial_masks.paper_fiducials``): the paper's
+    random masks with the three marks and their cleared band, the rest of each mask as the
+    paper has it; without the flag the masks are the paper's, unmarked."""
+    from click.testing import CliRunner
+
+    from unscatter.cli import main
+    from unscatter.io import read_mask
+
+    for flag, marked in (("--fiducials", True), ("--no-fiducials", False)):
+        out = tmp_path / flag
+        res = CliRunner().invoke(main, ["masks", "trial", str(out), "--count", "4", "--seed", "3", flag])
+        assert res.exit_code == 0, res.output
+        paper = masks.trial_masks(4, seed=3)
+        _, clear = masks.fiducial_marks(512)
+        for mid, m in paper.items():
+            got = read_mask(out / f"{mid}.png")
+            assert masks.carries_marks(got) == marked, (flag, mid)
+            assert np.array_equal(got[~clear], m[~clear]) and np.array_equal(got, masks.with_fiducials(m) if marked else m)

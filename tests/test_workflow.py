@@ -378,3 +378,12 @@ def test_trial_masks_and_virtual_lab_real_run(tmp_path):
     assert planned(str(batch), configs=[cfg]) == []
     cfg2 = write_config(tmp_path / "c2.yaml", results=str(results), trial_masks={"count": 3}, lab={"seed": 7})
     assert planned(str(batch), configs=[cfg2]) == [("virtual_lab", "batch=lab")]
+    # the paper's masks carry the registration marks only when asked (trial_masks.paper_fiducials)
+    from unscatter.io import read_mask
+    from unscatter.masks import carries_marks
+
+    assert not any(carries_marks(read_mask(p)) for p in (results / "trial_masks").glob("*.png"))
+    cfg3 = write_config(tmp_path / "c3.yaml", results=str(results), trial_masks={"count": 3, "paper_fiducials": True})
+    snakemake(str(results / "trial_masks"), "--cores", "2", configs=[cfg3])
+    assert sorted(p.stem for p in (results / "trial_masks").glob("*.png")) == ids
+    assert all(carries_marks(read_mask(p)) for p in (results / "trial_masks").glob("*.png"))

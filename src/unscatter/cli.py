@@ -94,11 +94,12 @@ def masks():
 @option(S.TRIAL_MASKS, "count")
 @option(S.TRIAL_MASKS, "seed")
 @option(S.TRIAL_MASKS, "size")
-def masks_trial(out_dir, count, seed, size):
+@option(S.TRIAL_MASKS, "paper_fiducials", "--fiducials/--no-fiducials")
+def masks_trial(out_dir, count, seed, size, paper_fiducials):
     """The paper's trial masks: checkerboards, rectangles, circles (8-bit PNG)."""
     from .masks import write_trial_masks
 
-    paths = write_trial_masks(out_dir, count=count, seed=seed, size=size)
+    paths = write_trial_masks(out_dir, count=count, seed=seed, size=size, fiducials=paper_fiducials)
     click.echo(f"wrote {len(paths)} trial masks to {out_dir}")
 
 

@@ -139,11 +139,15 @@ def trial_masks(count: int = _TRIAL.count, seed: int = _TRIAL.seed, size: int = 
     return out
 
 
-def write_trial_masks(out_dir, count: int = _TRIAL.count, seed: int = _TRIAL.seed, size: int = _TRIAL.size) -> list[Path]:
-    """The trial masks as ``out_dir/<id>.png`` (a new folder, or an earlier one of these)."""
+def write_trial_masks(out_dir, count: int = _TRIAL.count, seed: int = _TRIAL.seed, size: int = _TRIAL.size,
+                      fiducials: bool = _TRIAL.paper_fiducials) -> list[Path]:
+    """The trial masks as ``out_dir/<id>.png`` (a new folder, or an earlier one of these),
+    with the registration marks (``with_fiducials``) where ``fiducials``."""
     from .io import output_dir, write_png
 
     masks = trial_masks(count, seed, size)
+    if fiducials:
+        masks = {mid: with_fiducials(m) for mid, m in masks.items()}
     with output_dir(out_dir, command="masks trial") as tmp:
         for mid, m in masks.items():
             write_png(tmp / f"{mid}.png", m)

@@ -19,8 +19,9 @@ def main(snakemake):
         return
     from unscatter.masks import write_trial_masks
 
-    paths = write_trial_masks(out_dir, count=p.n, seed=p.seed, size=p.size)
-    log.info("wrote %d trial masks (seed %d, %d px) to %s", len(paths), p.seed, p.size, out_dir)
+    paths = write_trial_masks(out_dir, count=p.n, seed=p.seed, size=p.size, fiducials=p.paper_fiducials)
+    log.info("wrote %d trial masks (seed %d, %d px%s) to %s", len(paths), p.seed, p.size,
+             ", registration marks" if p.paper_fiducials else "", out_dir)
 
 
 if __name__ == "__main__":
