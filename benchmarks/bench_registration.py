@@ -152,6 +152,20 @@ def _substream(seed: int, lab: int, what: int) -> int:
     return int(np.random.SeedSequence([seed, lab, what]).generate_state(1)[0])
 
 
+def mask_pattern(kind: str, mid: str) -> str:
+    """The pattern a print's mask is of: its test pattern, its family among the paper's
+    trial masks (``unscatter.masks.trial_masks`` takes the families in turn), or its
+    design candidate's kind."""
+    from unscatter.masks import TRIAL_FAMILIES, test_pattern_of
+
+    if kind == "test":
+        return test_pattern_of(mid)
+    if kind in ("paper", "paper-marked"):
+
+        return TRIAL_FAMILIES[int(mid.rsplit("_", 1)[1]) % len(TRIAL_FAMILIES)]
+    return mid.rsplit("_", 1)[0]
+
+
 def lab_masks(kind: str, count: int, seed: int) -> dict:
     """id -> mask: test patterns (``unscatter.masks.test_pattern_masks``), the paper's random
     trial masks (``unscatter.masks.trial_masks``) without ("paper") or with the registration
@@ -176,7 +190,6 @@ def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2, masks:
     print rows)."""
     from unscatter.imaging import register_batch
     from unscatter.lab import print_batch, random_lab
-    from unscatter.masks import test_pattern_of
 
     over = random_lab(np.random.default_rng([seed, i, 0]))
     d = root / f"lab_{i:02d}"  # root is emptied for the run (benchmark_output_dir)
@@ -190,7 +203,7 @@ def run_lab(i: int, seed: int, prints: int, root: Path, threads: int = 2, masks:
     t_reg = time.perf_counter() - t0
     rows = evaluate(d / "reg", d / "batch.truth")
     for r in rows:
-        r.update(lab=i, pattern=test_pattern_of(r["id"]) if masks == "test" else r["id"].rsplit("_", 1)[0],
+        r.update(lab=i, pattern=mask_pattern(masks, r["id"]),
                  silently_wrong=int(silently_wrong(r)))
     lab = dict(index=i, overrides=over, register_s=t_reg, print_s=t_print, n=len(rows),
                image_size=tuple(over["microscope"]["image_size"]))

@@ -382,6 +382,7 @@ def test_trial_masks_and_virtual_lab_real_run(tmp_path):
     from unscatter.io import read_mask
     from unscatter.masks import carries_marks
 
+    assert sorted(p.stem for p in (results / "trial_masks").glob("*.png")) == ids
     assert not any(carries_marks(read_mask(p)) for p in (results / "trial_masks").glob("*.png"))
     cfg3 = write_config(tmp_path / "c3.yaml", results=str(results), trial_masks={"count": 3, "paper_fiducials": True})
     snakemake(str(results / "trial_masks"), "--cores", "2", configs=[cfg3])

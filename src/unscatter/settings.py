@@ -267,9 +267,10 @@ TRIAL_MASKS = Stage(
     fiducials=_bool(True, "designed: three registration marks (solid squares of 40 px at full grey in three corners, "
                     "a cleared band around them) on every designed mask, so that every print's pose rests on them "
                     "whatever the rest of the mask is (unscatter.masks.fiducial_marks)."),
-    paper_fiducials=_bool(False, "paper: the same registration marks on the paper's random masks (the paper's "
-                          "masks have none, and the default run keeps them so): the pose of every print rests on "
-                          "them, whatever the random mask is; they clear an 80 px square near three corners of a 512 px field."),
+    paper_fiducials=_bool(False, "paper: the designed masks' three registration marks on the paper's random masks "
+                          "too (the paper's masks have none; false keeps them as the paper has them). The "
+                          "registration checks each print's pose against its marks; they replace an 80 px square at "
+                          "each of three corners of a 512 px field (scaled with the size)."),
     next=_int(0, "Masks of the next print batch, designed around the diagnosis's model and the prints so far "
               "(sequential design, results/next_trial_masks/); 0 - none.", lo=0),
 )

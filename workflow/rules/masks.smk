@@ -14,7 +14,7 @@ rule trial_masks:
         draws=config["trial_masks"]["draws"],
         criterion=config["trial_masks"]["criterion"],
         fiducials=config["trial_masks"]["fiducials"],
-        paper_fiducials=config["trial_masks"]["paper_fiducials"],
+        paper_fiducials=config["trial_masks"]["paper_fiducials"] if config["trial_masks"]["kind"] == "paper" else False,
         code=code_version("masks", "io", *(["design", "model"] if config["trial_masks"]["kind"] == "designed" else [])),
     threads: 2
     resources:
