@@ -161,7 +161,6 @@ def mask_pattern(kind: str, mid: str) -> str:
     if kind == "test":
         return test_pattern_of(mid)
     if kind in ("paper", "paper-marked"):
-
         return TRIAL_FAMILIES[int(mid.rsplit("_", 1)[1]) % len(TRIAL_FAMILIES)]
     return mid.rsplit("_", 1)[0]
 

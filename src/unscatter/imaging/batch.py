@@ -941,6 +941,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                  f"size, known within {100 * held_stated:.2f} %" if held_stated else "")
     weighed = set()  # prints whose scale is weighed against their stated size (stated_scatter)
 
+    def spreads_of(*args, **kw) -> tuple[float, float]:
+        """``size_spread`` with the features' own places (``Fit.size_sd``) and without them
+        (``Fit.sizes_sd``): one computation where the batch measured no place spread."""
+        with_places = size_spread(*args, place_dose_sd=place_dose, **kw)
+        return with_places, (with_places if place_dose <= 0 else size_spread(*args, **kw))
+
     def no_size_note(mid) -> str:
         """What would hold the scale of a print whose features' sizes set it, where the
         batch knows nothing of it (no stated camera pixel size, and not one magnification
@@ -993,18 +999,16 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
             Tf = predicted_print(full, B, x, f)
-            args = (Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
-                    dose_response(full, B, x, f, Tf), dose_ref)
-            f.size_sd, f.sizes_sd = size_spread(*args, place_dose), size_spread(*args)
+            f.size_sd, f.sizes_sd = spreads_of(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
+                                               dose_response(full, B, x, f, Tf), dose_ref)
             return f
 
         if edges or scaled:
             f = fit(held_scale if scaled else None)
         else:
             f = ch.fit
-            f.size_sd, f.sizes_sd = (size_spread(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f),
-                                                 dose_response=spreads[mid][3], dose_reference=dose_ref, place_dose_sd=c)
-                                     for c in (place_dose, 0.0))
+            f.size_sd, f.sizes_sd = spreads_of(T, s.mode, sd, edge_sd=place_sd, image=imaged(mid, f),
+                                               dose_response=spreads[mid][3], dose_reference=dose_ref)
         p = stated.get(mid)
         if (p is not None and held_stated is not None and not scaled and f.sizes_sd <= s.hold_size_sd
                 and np.isfinite(f.pose_sd)):
