@@ -132,8 +132,10 @@ import numpy as np
 
 from unscatter.calibration import calibrate
 from unscatter.diagnosis import diagnose
+from unscatter.fitting import mask_threshold, print_weights
 from unscatter.io import write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
+from unscatter.prints import load_prints
 
 OFF = {"printer": {"kernel": {"heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
                    "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0}}
@@ -424,9 +426,14 @@ def random_labs(args) -> None:
         ids = list(ho_masks)
         arr = np.stack([ho_masks[k] for k in ids])
         sim_eq1, sim_sel = simulate(eq1, arr), simulate(sel, arr)
+        # the mask itself, printed where its grey level reaches the threshold that fits the trial prints best
+        tp = load_prints(prints)
+        obj = args.objective or "mismatch"
+        t_mask = mask_threshold(tp.masks, tp.prints, obj, weights=print_weights(tp.prints, obj))
+        sim_mask = arr >= t_mask
         for j, mid in enumerate(ids):
             t = ho_prints[mid]
-            pred = dict(eq1=sim_eq1[j], selected=sim_sel[j], floor=ho_floor[mid])
+            pred = dict(eq1=sim_eq1[j], selected=sim_sel[j], mask=sim_mask[j], floor=ho_floor[mid])
             print_rows.append(dict(lab=li, effect=effect, id=mid, pattern=mid.split("_")[0] if mid.startswith("paper_")
                                    else test_pattern_of(mid), printed_px=int(t.sum()),
                                    **{f"iou_{k}": metrics.iou(v, t) for k, v in pred.items()},
@@ -436,7 +443,7 @@ def random_labs(args) -> None:
         mean = lambda rs, k: float(np.mean([x[k] for x in rs]))  # noqa: E731
         truth = [ho_prints[mid] for mid in ids]
         pooled = {k: metrics.pooled_iou(v, truth) for k, v in
-                  (("eq1", sim_eq1), ("selected", sim_sel), ("floor", [ho_floor[mid] for mid in ids]))}
+                  (("eq1", sim_eq1), ("selected", sim_sel), ("mask", sim_mask), ("floor", [ho_floor[mid] for mid in ids]))}
         empty = {k: sum((x["printed_px"] == 0) != (x[f"px_{k}"] == 0) for x in rows) for k in ("eq1", "selected")}
         sig_lab = cfg["printer"]["kernel"]["sigma_um"] / px
         v = verdict(effect, r["effects"], r["unexplained_residual"])
@@ -445,7 +452,8 @@ def random_labs(args) -> None:
                    iou_eq1=mean(rows, "iou_eq1"), iou_selected=mean(rows, "iou_selected"), iou_floor=mean(rows, "iou_floor"),
                    patterns_iou_eq1=mean(pat, "iou_eq1"), patterns_iou_selected=mean(pat, "iou_selected"),
                    patterns_iou_floor=mean(pat, "iou_floor"), pooled_iou_eq1=pooled["eq1"],
-                   pooled_iou_selected=pooled["selected"], pooled_iou_floor=pooled["floor"], empty_wrong_eq1=empty["eq1"],
+                   pooled_iou_selected=pooled["selected"], pooled_iou_floor=pooled["floor"], pooled_iou_mask=pooled["mask"],
+                   mask_threshold=t_mask, beats_mask_flag=r["beats_mask"], empty_wrong_eq1=empty["eq1"],
                    empty_wrong_selected=empty["selected"], sigma_lab_px=sig_lab, sigma_eq1_px=eq1.values["sigma_px"],
                    sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
                    T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1),
@@ -540,6 +548,16 @@ def summary(rows: list) -> str:
                           f"{r['pooled_iou_selected']:.4f}" for r in worse),
                 "held-out masks the lab prints nothing of that a model prints (or the reverse), in all labs: Eq. 1 "
                 f"{int(sum(r['empty_wrong_eq1'] for r in rows))}, selected {int(sum(r['empty_wrong_selected'] for r in rows))}"]
+    if "pooled_iou_mask" in rows[0]:  # runs before the mask baseline lack it
+        below = [r for r in rows if r["pooled_iou_selected"] <= r["pooled_iou_mask"]]
+        flagged = [r for r in rows if str(r["beats_mask_flag"]) in ("False", "0", "false")]
+        gain = [r["pooled_iou_selected"] - r["pooled_iou_mask"] for r in rows]
+        out += [f"the mask itself (threshold fitted on the trial prints), pooled held-out IoU: median "
+                f"{np.median([r['pooled_iou_mask'] for r in rows]):.4f}; selected model above it by a median {np.median(gain):.4f} "
+                f"[min {min(gain):.4f}]; selected at or below it in {len(below)} of {len(rows)} labs against the truth"
+                + "".join(f" (lab {int(r['lab'])}: {r['pooled_iou_selected']:.4f} against {r['pooled_iou_mask']:.4f})" for r in below)
+                + f"; the diagnosis said so (no model beats the mask, on the trial prints) in {len(flagged)}"
+                + (f", of them rightly {sum(r in below for r in flagged)}" if flagged else "")]
     out += [
            f"held-out IoU (mean of per-print IoU) gap to the floor (floor - model), median [max]: Eq. 1 {np.median(gap_eq1):.4f} [{max(gap_eq1):.4f}], "
            f"selected {np.median(gap_sel):.4f} [{max(gap_sel):.4f}]; test patterns only, selected {np.median(pgap):.4f}",

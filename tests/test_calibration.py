@@ -102,6 +102,53 @@ def test_heldout_iou_reaches_the_labs_noise_floor(lab, calibrated):
     rows = read_tsv(calibrated.out / "cv.tsv")
     assert len(rows) == 32 and {r["id"] for r in rows} == set(lab.masks)
     assert np.mean([float(r["iou"]) for r in rows]) == pytest.approx(val["heldout_iou_mean"], abs=1e-5)
+    # the mask itself, the baseline: scattering rounds and grows these prints, so the model beats it by far
+    mb = val["mask_baseline"]
+    assert val["beats_mask"] and val["heldout_error"] < 0.5 * mb["heldout_error"]
+    assert val["heldout_iou_pooled"] > mb["heldout_iou_pooled"] + 0.03
+    assert np.mean([float(r["mask_iou"]) for r in rows]) == pytest.approx(mb["heldout_iou_mean"], abs=1e-5)
+    assert {int(r["mask_threshold"]) for r in rows} == set(mb["thresholds"])
+
+
+def test_prints_that_are_the_mask_itself_are_not_beaten_and_it_says_so(tmp_path):
+    """Prints that are their masks thresholded and shifted by up to 2 px (no scattering,
+    nothing Eq. 1 models): the calibrated model does no better than the mask itself on
+    held-out prints, and the calibration says so instead of handing on a model that
+    compensates for scattering that is not there."""
+    rng = np.random.default_rng(5)
+    masks = trial_masks(16, seed=3, size=256)
+    paths = {k: tmp_path / "masks" / f"{k}.png" for k in masks}
+    for k, m in masks.items():
+        write_png(paths[k], m)
+    prints = {k: np.roll(m >= 128, tuple(rng.integers(-2, 3, 2)), (0, 1)) for k, m in masks.items()}
+    d = write_prints_dir(tmp_path / "prints", prints, paths)
+    with pytest.warns(UserWarning, match="no better than the mask itself"):
+        params = calibrate([d], tmp_path / "cal", seed=0, **dict(FAST, folds=4))
+    val = params.info["validation"]
+    assert not val["beats_mask"] and val["mask_baseline"]["thresholds"] and all(
+        64 < t <= 192 for t in val["mask_baseline"]["thresholds"])
+    assert any("no better than the mask itself" in w for w in params.info["warnings"])
+    # the diagnosis finds no effect that does better, and says so
+    from unscatter.diagnosis import diagnose
+
+    r = diagnose([d], tmp_path / "cal", tmp_path / "diag", quick=True, seed=0, candidates=["edge_offset"], folds=2,
+                 figures=False, progress=False, workers=1)
+    assert not r["beats_mask"] and r["after"]["heldout_error"] >= r["mask"]["heldout_error"]
+    assert "**No model beats the mask itself**" in (tmp_path / "diag" / "report.md").read_text()
+
+
+def test_the_mask_threshold_is_the_objectives_best_grey_level():
+    from unscatter.fitting import mask_threshold, per_print_error
+
+    rng = np.random.default_rng(0)
+    masks = rng.integers(0, 256, (5, 24, 24)).astype(np.uint8)
+    prints = masks.astype(float) + rng.normal(0, 40, masks.shape) >= 150
+    w = rng.uniform(0.5, 2.0, 5)
+    for objective, weights in (("mismatch", None), ("dice", None), ("pixel_error", w)):
+        best = min(range(1, 257), key=lambda t: (per_print_error(masks >= t, prints, objective, weights=weights).mean(), t))
+        assert mask_threshold(masks, prints, objective, weights=weights) == best
+    assert mask_threshold(masks, masks >= 100) == 100  # exact: the grey levels present decide
+    assert mask_threshold(masks, np.zeros_like(prints)) == 256  # nothing prints
 
 
 def test_outputs(lab, calibrated):

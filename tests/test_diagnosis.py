@@ -384,7 +384,12 @@ def _check_outputs(out: Path, r: dict):
         assert np.isfinite(std) and std >= 0, (k, std)
         assert f"| {k} |" in (out / "report.md").read_text()
     ba = {row["model"]: row for row in read_tsv(out / "before_after.tsv")}
-    assert set(ba) == {"base", "selected"}
+    assert set(ba) == {"base", "selected", "mask itself"}
+    # the mask itself, chosen per fold on the training prints, is the baseline: these prints scatter, a model beats it
+    assert d["diagnosis"]["selected_beats_mask"]
+    assert float(ba["selected"]["heldout_error"]) < float(ba["mask itself"]["heldout_error"])
+    assert float(ba["selected"]["heldout_iou"]) > float(ba["mask itself"]["heldout_iou"])
+    assert "the mask itself (grey level >= " in (out / "report.md").read_text()
     diags = {row["diagnostic"] for row in read_tsv(out / "diagnostics.tsv")}
     assert {"signed_distance", "density_10um", "density_300um", "grey_level", "position", "orientation", "spectrum"} <= diags
     # every print's held-out error, per round's control and candidate: their means are ranking.tsv's
@@ -489,6 +494,7 @@ def test_cli_diagnose(case, tmp_path):
                                     "--candidates", "edge_offset", "--folds", "2", "--no-progress"])
     assert res.exit_code == 0, res.output
     assert "effects added: none" in res.output and (out / "model.yaml").is_file()
+    assert "(the mask itself 0." in res.output and "no better than the mask" not in res.output
     bad = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out),
                                     "--candidates", "glow"])
     assert bad.exit_code == 2 and "glow" in bad.output

@@ -246,6 +246,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         t_boot = time.perf_counter() - t0
     if unc.get("note"):
         run_warnings.append(unc["note"])
+    run_warnings += _against_mask(model, cv_summary, s["objective"])
     for w in run_warnings:
         warnings.warn(w, stacklevel=2)
         log.warning(w)
@@ -289,7 +290,8 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     save_params(out_dir / "params.yaml", fitted)
     hist_cols = ["generation", "nevals", "best", "mean", "std"] + space.names
     write_tsv(out_dir / "history.tsv", fit.history, hist_cols)
-    write_tsv(out_dir / "cv.tsv", cv_rows, ["fold", "id", "n_train", "iou", "pixel_error", "mismatch", "in_sample_iou"])
+    write_tsv(out_dir / "cv.tsv", cv_rows, ["fold", "id", "n_train", "iou", "pixel_error", "mismatch", "in_sample_iou", "error",
+                                            "mask_threshold", "mask_iou", "mask_error"])
     if boot_rows:
         write_tsv(out_dir / "bootstrap.tsv", boot_rows, ["replicate", "prints", "objective"] + space.names)
     if s["residual_maps"]:
@@ -301,6 +303,34 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     from .model import load_params
 
     return load_params(out_dir / "params.yaml")
+
+
+IOU_DISAGREE_P = 0.05  # the mask's held-out IoU above the model's, print by print, this surely: the objective is wrong
+
+
+def _against_mask(model: str, cv: dict, objective: str) -> list[str]:
+    """Warnings where the calibrated model predicts the held-out prints no better than the
+    mask itself (``fitting.cross_validate``'s baseline): by the objective (the model's
+    form misses what shapes the prints), or by held-out IoU, print by print (a paired
+    t-test, p < IOU_DISAGREE_P), where the objective prefers the model (the objective and
+    the score disagree)."""
+    mb = cv.get("mask_baseline")
+    if not mb:
+        return []
+    ts = "/".join(map(str, mb["thresholds"]))
+    scores = (f"held-out {objective} {cv['heldout_error']:.5g} against {mb['heldout_error']:.5g}, IoU {cv['heldout_iou_mean']:.4f} "
+              f"against {mb['heldout_iou_mean']:.4f} (pooled {cv['heldout_iou_pooled']:.4f} against {mb['heldout_iou_pooled']:.4f})")
+    if not cv["beats_mask"]:
+        return [f"{model} as calibrated predicts the held-out prints no better than the mask itself (printed where its grey "
+                f"level >= {ts}): {scores}. The model's form misses what shapes these prints: run the diagnosis, and do not "
+                f"compensate with this model (README, 'The mask itself as the baseline')"]
+    if mb.get("iou_better_p", 1.0) < IOU_DISAGREE_P:
+        return [f"{model} as calibrated beats the mask itself (printed where its grey level >= {ts}) by the objective "
+                f"but the mask scores better by held-out IoU (paired t-test over prints, p {mb['iou_better_p']:.2g}): "
+                f"{scores}. The objective and the score disagree: '{objective}' "
+                f"{'weighs each print by its area' if objective == 'mismatch' else 'does not rank as IoU does'}; "
+                f"see README, 'The mask itself as the baseline'"]
+    return []
 
 
 def _profile_blur(params: Params, m, obj, fit, f_ref, device, s: dict, meas: Measurement, step: float = 1.0):

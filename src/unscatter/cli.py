@@ -288,6 +288,8 @@ def calibrate_cmd(prints_dirs, out_dir, model, seed, population, generations, bo
     v, val = p.values, p.info.get("validation", {})
     msg = ", ".join(f"{k}={v[k]:.4g}" for k in p.free)
     heldout = f", held-out IoU {val['heldout_iou_mean']:.4f}" if val.get("heldout_iou_mean") is not None else ""
+    if val.get("mask_baseline"):
+        heldout += f" (pooled {val['heldout_iou_pooled']:.4f}; the mask itself {val['mask_baseline']['heldout_iou_pooled']:.4f})"
     click.echo(f"calibrated {model} on {p.info['data']['prints']} prints: {msg}; objective {p.info['objective']['value']:.5f}"
                f"{heldout} -> {out_dir / 'params.yaml'}")
     for w in p.info.get("warnings", []):
@@ -678,10 +680,14 @@ def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, qui
         raise click.UsageError(str(exc)) from None
     b, a = r["before"], r["after"]
     eff = ", ".join(r["effects"]) or "none"
-    click.echo(f"effects added: {eff}; held-out IoU {b['heldout_iou']:.4f} -> {a['heldout_iou']:.4f}, pixel error "
+    click.echo(f"effects added: {eff}; held-out IoU {b['heldout_iou']:.4f} -> {a['heldout_iou']:.4f} (the mask itself "
+               f"{r['mask']['heldout_iou']:.4f}), pixel error "
                f"{b['heldout_pixel_error']:.4f} -> {a['heldout_pixel_error']:.4f}; unexplained residual: "
                f"{'yes (' + ', '.join(r['unexplained_diagnostics']) + ')' if r['unexplained_residual'] else 'no'} "
                f"({r['seconds']:.0f} s) -> {out_dir / 'model.yaml'}")
+    if not r["beats_mask"]:
+        click.echo(f"warning: {r['model']} predicts the held-out prints no better than the mask itself: no model of the "
+                   f"library describes these prints (report.md)", err=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -83,6 +83,7 @@ from .fitting import (
     fit_params,
     grid_factor,
     hard_scores,
+    mask_threshold,
     per_print_error,
     print_weights,
     refine,
@@ -869,6 +870,22 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
     return rows, tests, sums, sp
 
 
+def mask_heldout(masks: np.ndarray, prints: np.ndarray, folds: list, objective: str, area_floor: float,
+                 weights: np.ndarray) -> tuple[np.ndarray, list]:
+    """The mask itself as a held-out prediction, the baseline every model must beat: each
+    fold's prints predicted as ``mask >= t``, t chosen on the other folds' prints by the
+    objective (``fitting.mask_threshold``). Returns the predictions and the thresholds."""
+    B = len(prints)
+    sims = np.zeros(prints.shape, bool)
+    ts = []
+    for test in folds:
+        train = np.setdiff1d(np.arange(B), test)
+        t = mask_threshold(masks[train], prints[train], objective, area_floor, weights[train])
+        sims[test] = masks[test] >= t
+        ts.append(t)
+    return sims, sorted(set(ts))
+
+
 def summary_metrics(prints: np.ndarray, sims: np.ndarray, pixel_um: float) -> dict:
     sc = [metrics.score(sm, p, pixel_um) for sm, p in zip(sims, prints)]
     mean = lambda k: float(np.nanmean([x[k] for x in sc])) if any(np.isfinite(x[k]) for x in sc) else float("nan")  # noqa: E731
@@ -1165,6 +1182,17 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
 
     before_m = summary_metrics(data.prints, base_ho.sims, px)
     after_m = summary_metrics(data.prints, cur.sims, px)
+    mask_sims, mask_ts = mask_heldout(data.masks, data.prints, folds, s["objective"], s["area_floor"], weights)
+    mask_m = summary_metrics(data.prints, mask_sims, px)
+    mask_error = per_print_error(mask_sims, data.prints, s["objective"], s["area_floor"], weights)
+    beats_mask = bool(cur.error.mean() < mask_error.mean())
+    mask_m.update(heldout_error=float(mask_error.mean()), thresholds=mask_ts)
+    for m_, ho_ in ((before_m, base_ho), (after_m, cur)):
+        m_["heldout_error"] = float(ho_.error.mean())
+    if not beats_mask:
+        log.warning("the selected model %s predicts the held-out prints no better than the mask itself (held-out %s %.5g "
+                    "against %.5g): no model of the library describes these prints", cur.model, s["objective"],
+                    cur.error.mean(), mask_error.mean())
     final = stats_final = None
     if cur is not base_ho:
         stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
@@ -1184,6 +1212,9 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
             base_model=base.model, base_params=str(base_path.resolve()) if base_path else None,
             prints_dirs=[str(Path(d).resolve()) for d in data.prints_dirs], prints=B, folds=len(folds), seed=seed,
             candidates=cands, objective=s["objective"], error=ERRORS[s["objective"]], heldout_before=before_m, heldout_after=after_m,
+            heldout_mask=dict(mask_m, note="the mask itself printed where its grey level >= t, t chosen on each fold's "
+                                           "training prints by the objective: no printer model"),
+            selected_beats_mask=beats_mask,
             improvement=stats_final, seconds=round(elapsed, 1),
             acceptance=(f"paired bootstrap over prints ({s['bootstrap']} replicates): 2.5 % quantile of the mean "
                         f"per-print improvement > 0, paired t-test one-sided p < {s['max_p']} and mean improvement >= "
@@ -1201,9 +1232,11 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     write_tsv(out_dir / "ranking.tsv", ranking, rank_cols)
     write_tsv(out_dir / "heldout_errors.tsv", per_print, ["round", "candidate"] + list(data.labels))
     ba = [dict(model="base", name=base_ho.model, effects="", **before_m),
-          dict(model="selected", name=cur.model, effects=",".join(accepted_effects), **after_m)]
+          dict(model="selected", name=cur.model, effects=",".join(accepted_effects), **after_m),
+          dict(model="mask itself", name="mask >= " + "/".join(map(str, mask_ts)), effects="",
+               **{k: v for k, v in mask_m.items() if k != "thresholds"})]
     write_tsv(out_dir / "before_after.tsv", ba, ["model", "name", "effects", "heldout_iou", "heldout_pixel_error",
-                                                 "heldout_epe_um", "heldout_mismatch"])
+                                                 "heldout_epe_um", "heldout_mismatch", "heldout_error"])
     diag_cols = ["stage", "model", "diagnostic", "bin", "x", "pixels", "prints", "residual_mean", "mismatch", "mtf_measured",
                  "mtf_simulated", "spectrum_ratio"]
     if cur is base_ho:
@@ -1218,15 +1251,16 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
         _figure_diagnostics(out_dir / "diagnostics.png", geo, stages, px)
         _figure_maps(out_dir / "residual_maps.png", data, base_ho, cur)
     _report(out_dir / "report.md", base_ho, cur, accepted_effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B,
-            len(folds), elapsed, stats_final, final, spread)
+            len(folds), elapsed, stats_final, final, spread, mask_m, beats_mask)
     log.info("diagnosis done in %.1f s: effects %s, unexplained residual %s", elapsed, accepted_effects or "none", bool(unexplained))
     return dict(effects=list(accepted_effects), model=cur.model, unexplained_residual=bool(unexplained),
-                unexplained_diagnostics=unexplained, before=before_m, after=after_m, rounds=ranking, structure_before=tests_b,
+                unexplained_diagnostics=unexplained, before=before_m, after=after_m, mask=mask_m, beats_mask=beats_mask,
+                rounds=ranking, structure_before=tests_b,
                 structure_after=tests_a, seconds=elapsed, out_dir=str(out_dir))
 
 
 def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, after_m, unexplained, s, B, k, elapsed, stats,
-            final: Params, spread: dict):
+            final: Params, spread: dict, mask_m: dict, beats_mask: bool):
     f = lambda x, d=4: "nan" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{d}f}"  # noqa: E731
     lines = ["# Residual diagnosis", ""]
     lines.append(f"{B} prints, {k}-fold held-out residuals; base model `{base_ho.model}`; {elapsed:.0f} s.")
@@ -1238,9 +1272,16 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     lines.append("")
     lines.append("| model | held-out IoU | pixel error | EPE (um) | mismatch |")
     lines.append("|---|---|---|---|---|")
-    for name, m in ((base_ho.model, before_m), (cur.model, after_m)) if cur is not base_ho else ((base_ho.model, before_m),):
+    rows = ((base_ho.model, before_m), (cur.model, after_m)) if cur is not base_ho else ((base_ho.model, before_m),)
+    rows += ((f"the mask itself (grey level >= {'/'.join(map(str, mask_m['thresholds']))}, no model)", mask_m),)
+    for name, m in rows:
         lines.append(f"| {name} | {f(m['heldout_iou'])} | {f(m['heldout_pixel_error'])} | {f(m['heldout_epe_um'], 2)} | "
                      f"{f(m['heldout_mismatch'], 5)} |")
+    if not beats_mask:
+        lines += ["", f"**No model beats the mask itself**: `{cur.model}` predicts the held-out prints no better than the "
+                      f"mask printed where its grey level reaches a threshold ({s['objective']} {cur.error.mean():.5g} against "
+                      f"{mask_m['heldout_error']:.5g}). No effect of the library describes what shapes these prints; do not "
+                      f"compensate with this model."]
     if stats:
         lines.append("")
         lines.append(f"Held-out mismatch lower by {100 * stats['relative']:.1f} % (95 % bootstrap interval of the mean per-print "

@@ -74,6 +74,38 @@ def per_print_error(simulated: np.ndarray, measured: np.ndarray, objective: str 
     return xor / npx * w
 
 
+def mask_threshold(masks: np.ndarray, prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02,
+                   weights=None) -> int:
+    """The grey level t (1 to 256) at which the mask itself, ``mask >= t``, best matches
+    ``prints`` by ``objective`` (``per_print_error``; ``weights`` as there): the model-free
+    baseline a printer model must beat. Every t is scored at once from each print's
+    histogram of mask grey levels among its printed and unprinted pixels (t = 256: nothing
+    prints). Ties go to the lowest t."""
+    masks = np.asarray(masks)
+    if masks.dtype != np.uint8:
+        raise TypeError(f"masks must be uint8 grey levels, got {masks.dtype}")
+    m = np.asarray(prints, bool)
+    B = len(m)
+    if B == 0:
+        return 128
+    grey = masks.reshape(B, -1).astype(np.int64) + 256 * np.arange(B)[:, None]
+    printed = np.bincount(grey[m.reshape(B, -1)], minlength=256 * B).reshape(B, 256)
+    dark = np.bincount(grey[~m.reshape(B, -1)], minlength=256 * B).reshape(B, 256)
+    def below(h):  # (B, 257): pixels of grey < t, for t = 0..256
+        return np.concatenate([np.zeros((B, 1), np.int64), np.cumsum(h, axis=1)], axis=1)[:, 1:]
+
+    # at threshold t (1..256) the printed pixels of grey < t are missed and the unprinted ones of grey >= t print
+    xor = (below(printed) + dark.sum(axis=1, keepdims=True) - below(dark)).astype(np.float64)
+    lit = (printed + dark).sum(axis=1, keepdims=True) - below(printed + dark)  # pixels the mask prints at t
+    npx = m[0].size
+    if objective == "dice":
+        err = xor / (lit + m.reshape(B, -1).sum(axis=1, keepdims=True) + area_floor * npx)
+    else:
+        w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+        err = xor / npx * w[:, None]
+    return int(np.argmin(err.mean(axis=0))) + 1
+
+
 def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
     """Per-print weights (mean 1) that make the weighted mean of per-print mismatch the
     ``objective`` (``OBJECTIVES``): ones for the paper's mismatch, and for pixel_error
@@ -505,33 +537,62 @@ class Refits:
 
 def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, per_print: list, runner: Refits | None = None):
     """k-fold over prints: refit without a fold, score the fold's prints (IoU, pixel
-    error). ``data``: the prints (``prints.PrintSet``: labels, prints); ``runner``:
-    where the refits run (None: in this process)."""
+    error, the objective's error), and the mask itself beside it: ``mask >= t`` with t
+    chosen on the fold's training prints (``mask_threshold``), the baseline a printer
+    model must beat. ``data``: the prints (``prints.PrintSet``: labels, masks, prints);
+    ``runner``: where the refits run (None: in this process)."""
     B = len(data)
     folds = int(folds or 0)
     if folds < 2 or B < 2:
         return [], dict(folds=0, note="cross-validation off" if folds < 2 else "too few prints for cross-validation")
     k = min(folds, B)
     perm = np.random.default_rng([seed, 7]).permutation(B)
-    m, device = refit["model"], refit["device"]
+    m, device, s = refit["model"], refit["device"], refit["s"]
+    objective, floor = s["objective"], s["area_floor"]
+    weights = print_weights(data.prints, objective, floor)
     runner = runner or Refits(refit)
     tests = np.array_split(perm, k)
     trains = [np.setdiff1d(np.arange(B), test) for test in tests]
     fits = runner.run([(train, None, seed + 1000 + i, f"cv fold {i}") for i, train in enumerate(trains)])
-    rows = []
+    rows, sims_all, base_all, order = [], [], [], []
     for i, (test, train, fit) in enumerate(zip(tests, trains, fits)):
         with torch.no_grad():
             sims = full.subset(test).sim.prints(m.theta(fit.values, device))[0].cpu().numpy()
-        for j, sim in zip(test, sims):
+        t = mask_threshold(data.masks[train], data.prints[train], objective, floor, weights[train])
+        base = data.masks[test] >= t
+        err = per_print_error(sims, data.prints[test], objective, floor, weights[test])
+        err_base = per_print_error(base, data.prints[test], objective, floor, weights[test])
+        for j, sim, b, e, eb in zip(test, sims, base, err, err_base):
             p = data.prints[j]
             rows.append(dict(fold=i, id=data.labels[j], n_train=len(train), iou=metrics.iou(sim, p), pixel_error=metrics.pixel_error(sim, p),
-                             mismatch=float(np.mean(sim != p)), in_sample_iou=per_print[j]["iou"]))
+                             mismatch=float(np.mean(sim != p)), in_sample_iou=per_print[j]["iou"], error=float(e),
+                             mask_threshold=t, mask_iou=metrics.iou(b, p), mask_error=float(eb)))
+        sims_all += list(sims)
+        base_all += list(base)
+        order += list(test)
     pe = [r["pixel_error"] for r in rows if np.isfinite(r["pixel_error"])]
+    error, mask_error = float(np.mean([r["error"] for r in rows])), float(np.mean([r["mask_error"] for r in rows]))
     summary = dict(folds=k, heldout_iou_mean=float(np.mean([r["iou"] for r in rows])),
                    heldout_iou_median=float(np.median([r["iou"] for r in rows])),
+                   heldout_iou_pooled=metrics.pooled_iou(sims_all, data.prints[order]),
                    heldout_pixel_error_mean=float(np.mean(pe)) if pe else None,
                    heldout_mismatch_mean=float(np.mean([r["mismatch"] for r in rows])),
-                   in_sample_iou_mean=float(np.mean([r["iou"] for r in per_print])))
+                   in_sample_iou_mean=float(np.mean([r["iou"] for r in per_print])),
+                   heldout_error=error,
+                   mask_baseline=dict(
+                       heldout_error=mask_error, heldout_iou_mean=float(np.mean([r["mask_iou"] for r in rows])),
+                       heldout_iou_pooled=metrics.pooled_iou(base_all, data.prints[order]),
+                       thresholds=sorted({int(r["mask_threshold"]) for r in rows}),
+                       note="the mask itself printed where its grey level >= t, t chosen on each fold's training prints "
+                            "by the objective: no printer model"),
+                   beats_mask=bool(error < mask_error))
+    # does the mask score better by held-out IoU, print by print (paired t-test, one-sided)?
+    d = np.array([r["mask_iou"] - r["iou"] for r in rows], np.float64)
+    d = d[np.isfinite(d)]
+    if len(d) >= 3 and d.std() > 0:
+        from scipy.stats import ttest_rel
+
+        summary["mask_baseline"]["iou_better_p"] = float(ttest_rel(d, np.zeros_like(d), alternative="greater").pvalue)
     return rows, summary
 
 

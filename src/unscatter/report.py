@@ -211,8 +211,10 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
         cv = cal / "cv.tsv"
         if cv.is_file():
             rows = read_tsv(cv)
+            base = (f" The mask itself (printed where its grey level reaches a threshold chosen on the training prints), "
+                    f"no model: held-out IoU {_mean(rows, 'mask_iou'):.4f}." if rows and "mask_iou" in rows[0] else "")
             page.p(f"Held-out (k-fold) IoU {_mean(rows, 'iou'):.4f}, pixel error {_mean(rows, 'pixel_error'):.4f} "
-                   f"over {len(rows)} prints (in-sample IoU {_mean(rows, 'in_sample_iou'):.4f}).")
+                   f"over {len(rows)} prints (in-sample IoU {_mean(rows, 'in_sample_iou'):.4f}).{base}")
         page.tsv(cv, limit=40)
         page.image(cal / "fit.png", "Measured vs simulated prints.")
 
