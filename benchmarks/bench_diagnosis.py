@@ -3,7 +3,7 @@ how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
     python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--registered]
-        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]] [--workers N]
+        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]] [--workers N] [--sigma-um LO,HI]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
 reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
@@ -35,7 +35,11 @@ seed, N and effects as a paper run, and the labs and held-out masks are the same
 ``--criterion`` and ``--noise`` choose the design's criterion and its model of the print
 noise (``design.NOISE``).
 "1-IoU fx" is the effect's size (the lab's noise-free held-out prints with vs without
-it). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
+it). The mask itself is scored beside the models (``pooled_iou_mask`` in labs.tsv: the
+mask printed where its grey level reaches the threshold that fits the trial prints best,
+``fitting.mask_threshold``), with whether the diagnosis said that no model beats it
+(``beats_mask_flag``); ``--sigma-um LO,HI`` draws the labs' scattering over that range
+instead (a sharp printer, where the mask is a strong baseline). Tables: ``benchmarks/out/diagnosis/seed<S>.../labs.tsv``, ``prints.tsv``, ``summary.txt``.
 
 Measured on 2 shared CPU cores (other jobs running: times are rough), 1 torch thread,
 ``--quick`` (256 x 256, 32 prints, quick diagnosis). BEFORE: main at de62901; AFTER: the
@@ -264,6 +268,16 @@ def random_effect_lab(rng: np.random.Generator, effect: str, strength: str = "wi
     return {"printer": p}, mag
 
 
+def _with_sigma(lab: tuple[dict, str], lab_seed: int, args) -> tuple[dict, str]:
+    """``--sigma-um LO,HI``: the lab's scattering sigma drawn log-uniformly over that range
+    instead (from its own stream, so the rest of the lab is the same draw)."""
+    over, mag = lab
+    if args.sigma_um:
+        lo, hi = (float(x) for x in args.sigma_um.split(","))
+        over["printer"]["kernel"]["sigma_um"] = float(np.exp(np.random.default_rng([lab_seed, 17]).uniform(np.log(lo), np.log(hi))))
+    return over, mag
+
+
 def _lab_truth(printer, level, masks: dict, seed: int, votes: int = 0):
     """The lab's prints of ``masks`` in mask coordinates (the microscope left out: only
     calibration and diagnosis are judged) and, with ``votes``, the floor: the per-pixel
@@ -355,6 +369,7 @@ def random_labs(args) -> None:
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
     root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
                                                           f"{_designed_tag(args)}{'_registered' if args.registered else ''}"
+                                                          f"{'_sigma' + args.sigma_um.replace(',', '-') if args.sigma_um else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -364,7 +379,8 @@ def random_labs(args) -> None:
            + (f" --trial {args.trial}" if args.trial != "paper" else "")
            + (f" --criterion {args.criterion}" if args.trial == "designed" and args.criterion != "d" else "")
            + (f" --noise {args.noise}" if args.trial == "designed" and args.noise else "")
-           + (" --registered" if args.registered else "") + (f" --tag {args.tag}" if args.tag else ""))
+           + (" --registered" if args.registered else "") + (f" --sigma-um {args.sigma_um}" if args.sigma_um else "")
+           + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
     rng = np.random.default_rng(seed)
@@ -391,7 +407,7 @@ def random_labs(args) -> None:
     lines = [head]
     for li, effect in enumerate(order[: args.random_labs]):
         lab_seed = int(rng.integers(1 << 31))
-        over, mag = random_effect_lab(np.random.default_rng(lab_seed), effect, args.strength)
+        over, mag = _with_sigma(random_effect_lab(np.random.default_rng(lab_seed), effect, args.strength), lab_seed, args)
         cfg = load_config(overrides=over)
         px = cfg["batch"]["pixel_size_um"]
         level = cfg["microscope"]["level"]
@@ -402,7 +418,8 @@ def random_labs(args) -> None:
         # how much the effect matters: the lab's noise-free held-out prints with it vs without it
         quiet = {"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}}
         with_fx = Printer(load_config(overrides=_merge(over, quiet))["printer"], size, px)
-        without = Printer(load_config(overrides=_merge(random_effect_lab(np.random.default_rng(lab_seed), "none")[0], quiet))
+        without = Printer(load_config(overrides=_merge(_with_sigma(random_effect_lab(np.random.default_rng(lab_seed), "none"),
+                                                                   lab_seed, args)[0], quiet))
                           ["printer"], size, px)
         a, _ = _lab_truth(with_fx, level, ho_masks, 0)
         b, _ = _lab_truth(without, level, ho_masks, 0)
@@ -453,7 +470,9 @@ def random_labs(args) -> None:
                    patterns_iou_eq1=mean(pat, "iou_eq1"), patterns_iou_selected=mean(pat, "iou_selected"),
                    patterns_iou_floor=mean(pat, "iou_floor"), pooled_iou_eq1=pooled["eq1"],
                    pooled_iou_selected=pooled["selected"], pooled_iou_floor=pooled["floor"], pooled_iou_mask=pooled["mask"],
-                   mask_threshold=t_mask, beats_mask_flag=r["beats_mask"], empty_wrong_eq1=empty["eq1"],
+                   mask_threshold=t_mask, beats_mask_flag=r["beats_mask"],
+                   resolved_flag=(eq1.info.get("validation", {}).get("resolution") or {}).get("resolved", ""),
+                   empty_wrong_eq1=empty["eq1"],
                    empty_wrong_selected=empty["selected"], sigma_lab_px=sig_lab, sigma_eq1_px=eq1.values["sigma_px"],
                    sigma_selected_px=sel.values["sigma_px"], T_lab=cfg["printer"]["cure"]["threshold"], T_eq1=eq1.values["T"],
                    T_selected=sel.values["T"], cal_s=round(t_cal, 1), diag_s=round(t_diag, 1),
@@ -558,6 +577,11 @@ def summary(rows: list) -> str:
                 + "".join(f" (lab {int(r['lab'])}: {r['pooled_iou_selected']:.4f} against {r['pooled_iou_mask']:.4f})" for r in below)
                 + f"; the diagnosis said so (no model beats the mask, on the trial prints) in {len(flagged)}"
                 + (f", of them rightly {sum(r in below for r in flagged)}" if flagged else "")]
+        eq1_below = [r for r in rows if r["pooled_iou_eq1"] <= r["pooled_iou_mask"]]
+        unresolved = [r for r in rows if str(r.get("resolved_flag")) in ("False", "0", "false")]
+        out += [f"Eq. 1 at or below the mask against the truth in {len(eq1_below)} of {len(rows)} labs; the calibration said "
+                f"its sigma is within the microscope's blur (not resolved) in {len(unresolved)}, of them Eq. 1 below the mask in "
+                f"{sum(r in eq1_below for r in unresolved)}"]
     out += [
            f"held-out IoU (mean of per-print IoU) gap to the floor (floor - model), median [max]: Eq. 1 {np.median(gap_eq1):.4f} [{max(gap_eq1):.4f}], "
            f"selected {np.median(gap_sel):.4f} [{max(gap_sel):.4f}]; test patterns only, selected {np.median(pgap):.4f}",
@@ -602,6 +626,9 @@ def main():
     ap.add_argument("--registered", action="store_true",
                     help="random labs: the trial prints through the whole lab (its random microscope, camera and "
                          "metadata) and the registration, failed prints skipped, instead of the lab's true prints")
+    ap.add_argument("--sigma-um", default=None, metavar="LO,HI",
+                    help="random labs: draw the scattering sigma log-uniformly over LO..HI um instead of the random lab's "
+                         "range (e.g. 1,4: a sharp printer, where the mask itself is a strong baseline)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

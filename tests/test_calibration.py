@@ -137,6 +137,29 @@ def test_prints_that_are_the_mask_itself_are_not_beaten_and_it_says_so(tmp_path)
     assert "**No model beats the mask itself**" in (tmp_path / "diag" / "report.md").read_text()
 
 
+def test_a_sigma_within_the_microscopes_blur_is_not_taken_for_scattering(lab, tmp_path):
+    """Where the registration measured a microscope blur as large as the fitted sigma, the
+    prints do not resolve the scattering: the calibration says so. A blur well below it
+    (and prints without a registration.yaml) give no such warning."""
+    ids = list(lab.masks)[:12]
+    d = write_prints_dir(tmp_path / "prints", {k: lab.prints[k] for k in ids}, lab.mask_paths)
+    sigma = lab.truth["sigma_px"]
+    for blur, resolved in ((1.2 * sigma, False), (0.3 * sigma, True), (None, None)):
+        if blur is not None:
+            write_yaml(d / "registration.yaml", dict(measurement=dict(blur_px=blur, smoothing_px=0.5, gel_share=0.6,
+                                                                      level=0.5)))
+        params = calibrate([d], tmp_path / f"cal{blur}", seed=0, **FAST)
+        res = params.info["validation"].get("resolution")
+        warned = any("do not resolve the scattering" in w for w in params.info["warnings"])
+        if blur is None:
+            assert res is None and not warned
+            continue
+        assert res["resolved"] is resolved and warned is (not resolved)
+        assert res["measurement_blur_px"] == pytest.approx(np.hypot(blur, 0.5), abs=1e-3)
+        assert abs(res["sigma_px"] / sigma - 1) < 0.1
+        (d / "registration.yaml").unlink()
+
+
 def test_the_mask_threshold_is_the_objectives_best_grey_level():
     from unscatter.fitting import mask_threshold, per_print_error
 

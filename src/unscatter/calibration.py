@@ -247,6 +247,14 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     if unc.get("note"):
         run_warnings.append(unc["note"])
     run_warnings += _against_mask(model, cv_summary, s["objective"])
+    resolution = _resolution(values, data, meas)
+    if resolution and not resolution["resolved"]:
+        run_warnings.append(
+            f"sigma_px = {values['sigma_px']:.3g} is no larger than the measurement's own blur "
+            f"({resolution['measurement_blur_px']:.3g} design px: the microscope's blur as the registration's print template "
+            f"measured it, with the registration's smoothing): these prints do not resolve the scattering, and the fit "
+            f"takes the microscope's blur for it. Against the real cure such a model can predict worse than the mask "
+            f"itself; image the prints at a higher magnification (README, 'Scattering the microscope does not resolve')")
     for w in run_warnings:
         warnings.warn(w, stacklevel=2)
         log.warning(w)
@@ -277,7 +285,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
                  seconds=round(t_fit, 2),
                  settings={k: (list(v) if isinstance(v, tuple) else v.as_dict() if isinstance(v, Measurement) else v)
                            for k, v in s.items() if k not in ("progress", "device")}),
-        validation=dict(cv_summary, seconds=round(t_cv, 2)),
+        validation=dict(cv_summary, seconds=round(t_cv, 2), **({"resolution": resolution} if resolution else {})),
         uncertainty=dict({k: v for k, v in unc.items() if k != "parameters"}, seconds=round(t_boot, 2)),
         warnings=run_warnings,
     )
@@ -305,6 +313,28 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     return load_params(out_dir / "params.yaml")
 
 
+def _resolution(values: dict, data: PrintSet, meas: Measurement | None) -> dict | None:
+    """Does the fitted scattering exceed what the measurement itself blurs? The prints'
+    registrations record the microscope's blur (their print template's) and their own
+    smoothing; where the fitted sigma is no larger than the two together, the prints
+    cannot tell scattering from the microscope. None where nothing is recorded, the model
+    has no sigma, or the fit went through the measurement stage (which fits the blur)."""
+    if meas is not None or "sigma_px" not in values:
+        return None
+    try:
+        rec = _measurement("registration", data)
+    except InputError:  # some folders record none, or at different levels: nothing one number can say
+        return None
+    if rec is None:
+        return None
+    b = float(np.hypot(rec.blur_px, rec.smoothing_px))
+    return dict(measurement_blur_px=round(b, 4), sigma_px=float(values["sigma_px"]),
+                resolved=bool(values["sigma_px"] > RESOLVED_RATIO * b),
+                note="the fitted sigma against the microscope's blur (registration.yaml) and the registration's smoothing "
+                     "in quadrature: at or below it the prints do not resolve the scattering")
+
+
+RESOLVED_RATIO = 1.0  # a fitted sigma at most this times the measurement's own blur is not resolved
 IOU_DISAGREE_P = 0.05  # the mask's held-out IoU above the model's, print by print, this surely: the objective is wrong
 
 

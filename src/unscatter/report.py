@@ -208,6 +208,8 @@ def build_report(results_dir, out_html, title: str = "unscatter run report", ben
         page.h(3, f"Model {cal.name}")
         if (cal / "params.yaml").is_file():
             _params_table(page, cal / "params.yaml")
+            for w in read_yaml(cal / "params.yaml").get("warnings") or []:
+                page.p(f"Warning: {w}")
         cv = cal / "cv.tsv"
         if cv.is_file():
             rows = read_tsv(cv)
