@@ -107,7 +107,29 @@ def test_heldout_iou_reaches_the_labs_noise_floor(lab, calibrated):
     assert val["beats_mask"] and val["heldout_error"] < 0.5 * mb["heldout_error"]
     assert val["heldout_iou_pooled"] > mb["heldout_iou_pooled"] + 0.03
     assert np.mean([float(r["mask_iou"]) for r in rows]) == pytest.approx(mb["heldout_iou_mean"], abs=1e-5)
-    assert {int(r["mask_threshold"]) for r in rows} == set(mb["thresholds"])
+    # each fold's threshold is chosen on the other folds' prints, never on its own
+    from unscatter.fitting import mask_threshold
+
+    data = load_prints(lab.dir)
+    at = {lab_id: j for j, lab_id in enumerate(data.labels)}
+    for fold in {r["fold"] for r in rows}:
+        train = [at[r["id"]] for r in rows if r["fold"] != fold]
+        ts = {int(r["mask_threshold"]) for r in rows if r["fold"] == fold}
+        assert ts == {mask_threshold(data.masks[train], data.prints[train])}
+
+
+def test_the_mask_warnings_say_which_way_the_model_loses():
+    from unscatter.calibration import _against_mask
+
+    cv = dict(heldout_error=0.010, heldout_iou_mean=0.90, heldout_iou_pooled=0.92, beats_mask=True,
+              mask_baseline=dict(heldout_error=0.020, heldout_iou_mean=0.80, heldout_iou_pooled=0.85, thresholds=[128],
+                                 iou_better_p=0.9))
+    assert _against_mask("eq1", cv, "mismatch") == []  # better by both
+    lost = _against_mask("eq1", dict(cv, beats_mask=False), "mismatch")
+    assert len(lost) == 1 and "no better than the mask itself" in lost[0] and ">= 128" in lost[0]
+    disagree = _against_mask("eq1", dict(cv, mask_baseline=dict(cv["mask_baseline"], iou_better_p=0.01)), "mismatch")
+    assert len(disagree) == 1 and "objective and the score disagree" in disagree[0] and "p 0.01" in disagree[0]
+    assert _against_mask("eq1", dict(folds=0, note="cross-validation off"), "mismatch") == []
 
 
 def test_prints_that_are_the_mask_itself_are_not_beaten_and_it_says_so(tmp_path):
@@ -164,14 +186,23 @@ def test_the_mask_threshold_is_the_objectives_best_grey_level():
     from unscatter.fitting import mask_threshold, per_print_error
 
     rng = np.random.default_rng(0)
-    masks = rng.integers(0, 256, (5, 24, 24)).astype(np.uint8)
-    prints = masks.astype(float) + rng.normal(0, 40, masks.shape) >= 150
     w = rng.uniform(0.5, 2.0, 5)
-    for objective, weights in (("mismatch", None), ("dice", None), ("pixel_error", w)):
-        best = min(range(1, 257), key=lambda t: (per_print_error(masks >= t, prints, objective, weights=weights).mean(), t))
-        assert mask_threshold(masks, prints, objective, weights=weights) == best
-    assert mask_threshold(masks, masks >= 100) == 100  # exact: the grey levels present decide
-    assert mask_threshold(masks, np.zeros_like(prints)) == 256  # nothing prints
+    for levels in (256, 5):  # every grey level, or a few (ties: the middle of the first run of best t)
+        masks = (rng.integers(0, levels, (5, 24, 24)) * (255 // (levels - 1))).astype(np.uint8)
+        prints = masks.astype(float) + rng.normal(0, 40, masks.shape) >= 150
+        for objective, weights in (("mismatch", None), ("dice", None), ("pixel_error", w)):
+            e = np.array([per_print_error(masks >= t, prints, objective, weights=weights).mean() for t in range(1, 257)])
+            best = np.flatnonzero(e == e.min())
+            first = np.split(best, np.flatnonzero(np.diff(best) > 1) + 1)[0]
+            assert mask_threshold(masks, prints, objective, weights=weights) == first[len(first) // 2] + 1
+            if levels == 5:
+                assert len(first) > 1  # the ties are there to break
+    assert mask_threshold(masks, masks >= 100) == 95  # between the levels present, 63 and 126: the middle
+    full = np.arange(256, dtype=np.uint8).reshape(1, 16, 16)
+    assert mask_threshold(full, full >= 100) == 100  # every level present: exact
+    assert mask_threshold(full, np.zeros(full.shape, bool)) == 256  # nothing prints
+    with pytest.raises(ValueError, match="no prints"):
+        mask_threshold(masks[:0], prints[:0])
 
 
 def test_outputs(lab, calibrated):

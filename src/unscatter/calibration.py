@@ -247,7 +247,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     if unc.get("note"):
         run_warnings.append(unc["note"])
     run_warnings += _against_mask(model, cv_summary, s["objective"])
-    resolution = _resolution(values, data, meas)
+    resolution = _resolution(values, data, meas) if "sigma_px" in space.names else None  # a fitted sigma only
     if resolution and not resolution["resolved"]:
         run_warnings.append(
             f"sigma_px = {values['sigma_px']:.3g} is no larger than the measurement's own blur "
@@ -318,7 +318,8 @@ def _resolution(values: dict, data: PrintSet, meas: Measurement | None) -> dict 
     registrations record the microscope's blur (their print template's) and their own
     smoothing; where the fitted sigma is no larger than the two together, the prints
     cannot tell scattering from the microscope. None where nothing is recorded, the model
-    has no sigma, or the fit went through the measurement stage (which fits the blur)."""
+    has no sigma, or the fit went through the measurement stage (which fits the blur);
+    the caller asks only where sigma was fitted."""
     if meas is not None or "sigma_px" not in values:
         return None
     try:

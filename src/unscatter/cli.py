@@ -686,8 +686,8 @@ def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, qui
                f"{'yes (' + ', '.join(r['unexplained_diagnostics']) + ')' if r['unexplained_residual'] else 'no'} "
                f"({r['seconds']:.0f} s) -> {out_dir / 'model.yaml'}")
     if not r["beats_mask"]:
-        click.echo(f"warning: {r['model']} predicts the held-out prints no better than the mask itself: no model of the "
-                   f"library describes these prints (report.md)", err=True)
+        click.echo(f"warning: {r['model']} predicts the held-out prints no better than the mask itself: none of the "
+                   f"candidate effects tried describes these prints (report.md)", err=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1191,7 +1191,7 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
         m_["heldout_error"] = float(ho_.error.mean())
     if not beats_mask:
         log.warning("the selected model %s predicts the held-out prints no better than the mask itself (held-out %s %.5g "
-                    "against %.5g): no model of the library describes these prints", cur.model, s["objective"],
+                    "against %.5g): none of the candidate effects tried describes these prints", cur.model, s["objective"],
                     cur.error.mean(), mask_error.mean())
     final = stats_final = None
     if cur is not base_ho:
@@ -1280,7 +1280,7 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     if not beats_mask:
         lines += ["", f"**No model beats the mask itself**: `{cur.model}` predicts the held-out prints no better than the "
                       f"mask printed where its grey level reaches a threshold ({s['objective']} {cur.error.mean():.5g} against "
-                      f"{mask_m['heldout_error']:.5g}). No effect of the library describes what shapes these prints; do not "
+                      f"{mask_m['heldout_error']:.5g}). None of the candidate effects tried describes what shapes these prints; do not "
                       f"compensate with this model."]
     if stats:
         lines.append("")

@@ -80,30 +80,33 @@ def mask_threshold(masks: np.ndarray, prints: np.ndarray, objective: str = "mism
     ``prints`` by ``objective`` (``per_print_error``; ``weights`` as there): the model-free
     baseline a printer model must beat. Every t is scored at once from each print's
     histogram of mask grey levels among its printed and unprinted pixels (t = 256: nothing
-    prints). Ties go to the lowest t."""
+    prints). Masks hold few grey levels, so the best t is a run of equal scores between
+    two levels present; the middle of the first such run is taken (a held-out grey level
+    inside it is not pushed to either side)."""
     masks = np.asarray(masks)
     if masks.dtype != np.uint8:
         raise TypeError(f"masks must be uint8 grey levels, got {masks.dtype}")
     m = np.asarray(prints, bool)
     B = len(m)
     if B == 0:
-        return 128
+        raise ValueError("no prints to choose the mask's threshold on")
     grey = masks.reshape(B, -1).astype(np.int64) + 256 * np.arange(B)[:, None]
     printed = np.bincount(grey[m.reshape(B, -1)], minlength=256 * B).reshape(B, 256)
     dark = np.bincount(grey[~m.reshape(B, -1)], minlength=256 * B).reshape(B, 256)
-    def below(h):  # (B, 257): pixels of grey < t, for t = 0..256
-        return np.concatenate([np.zeros((B, 1), np.int64), np.cumsum(h, axis=1)], axis=1)[:, 1:]
-
-    # at threshold t (1..256) the printed pixels of grey < t are missed and the unprinted ones of grey >= t print
-    xor = (below(printed) + dark.sum(axis=1, keepdims=True) - below(dark)).astype(np.float64)
-    lit = (printed + dark).sum(axis=1, keepdims=True) - below(printed + dark)  # pixels the mask prints at t
+    # column j is t = j + 1: the printed pixels of grey < t are missed, the unprinted ones of grey >= t print
+    xor = (np.cumsum(printed, axis=1) + dark.sum(axis=1, keepdims=True) - np.cumsum(dark, axis=1)).astype(np.float64)
     npx = m[0].size
     if objective == "dice":
-        err = xor / (lit + m.reshape(B, -1).sum(axis=1, keepdims=True) + area_floor * npx)
+        lit = (printed + dark).sum(axis=1, keepdims=True) - np.cumsum(printed + dark, axis=1)  # pixels the mask prints
+        den = lit + m.reshape(B, -1).sum(axis=1, keepdims=True) + area_floor * npx
+        err = np.divide(xor, den, out=np.zeros_like(xor), where=den > 0)  # both empty: no error
     else:
         w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
         err = xor / npx * w[:, None]
-    return int(np.argmin(err.mean(axis=0))) + 1
+    e = err.mean(axis=0)
+    best = np.flatnonzero(e <= e.min() * (1 + 1e-12) + 1e-300)
+    run = best[: int(np.argmax(np.diff(best) > 1)) + 1] if len(best) > 1 and (np.diff(best) > 1).any() else best
+    return int(run[len(run) // 2]) + 1
 
 
 def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
