@@ -83,7 +83,7 @@ from .fitting import (
     fit_params,
     grid_factor,
     hard_scores,
-    mask_threshold,
+    mask_heldout,
     per_print_error,
     print_weights,
     refine,
@@ -870,22 +870,6 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
     return rows, tests, sums, sp
 
 
-def mask_heldout(masks: np.ndarray, prints: np.ndarray, folds: list, objective: str, area_floor: float,
-                 weights: np.ndarray) -> tuple[np.ndarray, list]:
-    """The mask itself as a held-out prediction, the baseline every model must beat: each
-    fold's prints predicted as ``mask >= t``, t chosen on the other folds' prints by the
-    objective (``fitting.mask_threshold``). Returns the predictions and the thresholds."""
-    B = len(prints)
-    sims = np.zeros(prints.shape, bool)
-    ts = []
-    for test in folds:
-        train = np.setdiff1d(np.arange(B), test)
-        t = mask_threshold(masks[train], prints[train], objective, area_floor, weights[train])
-        sims[test] = masks[test] >= t
-        ts.append(t)
-    return sims, sorted(set(ts))
-
-
 def summary_metrics(prints: np.ndarray, sims: np.ndarray, pixel_um: float) -> dict:
     sc = [metrics.score(sm, p, pixel_um) for sm, p in zip(sims, prints)]
     mean = lambda k: float(np.nanmean([x[k] for x in sc])) if any(np.isfinite(x[k]) for x in sc) else float("nan")  # noqa: E731
@@ -1182,7 +1166,8 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
 
     before_m = summary_metrics(data.prints, base_ho.sims, px)
     after_m = summary_metrics(data.prints, cur.sims, px)
-    mask_sims, mask_ts = mask_heldout(data.masks, data.prints, folds, s["objective"], s["area_floor"], weights)
+    mask_sims, fold_ts = mask_heldout(data.masks, data.prints, folds, s["objective"], s["area_floor"], weights)
+    mask_ts = sorted(set(fold_ts))
     mask_m = summary_metrics(data.prints, mask_sims, px)
     mask_error = per_print_error(mask_sims, data.prints, s["objective"], s["area_floor"], weights)
     beats_mask = bool(cur.error.mean() < mask_error.mean())

@@ -109,6 +109,23 @@ def mask_threshold(masks: np.ndarray, prints: np.ndarray, objective: str = "mism
     return int(run[len(run) // 2]) + 1
 
 
+def mask_heldout(masks: np.ndarray, prints: np.ndarray, folds: list, objective: str = "mismatch",
+                 area_floor: float = 0.02, weights=None) -> tuple[np.ndarray, list]:
+    """The mask itself as a held-out prediction, the baseline every model must beat: each
+    fold's prints (``folds``: index arrays) predicted as ``mask >= t``, t chosen on the
+    other folds' prints by the objective (``mask_threshold``; ``weights``: of all the
+    prints). Returns the predictions and each fold's t."""
+    B = len(prints)
+    w = np.ones(B) if weights is None else np.asarray(weights, np.float64)
+    sims = np.zeros(np.shape(prints), bool)
+    ts = []
+    for test in folds:
+        train = np.setdiff1d(np.arange(B), test)
+        ts.append(mask_threshold(masks[train], prints[train], objective, area_floor, w[train]))
+        sims[test] = masks[test] >= ts[-1]
+    return sims, ts
+
+
 def print_weights(prints: np.ndarray, objective: str = "mismatch", area_floor: float = 0.02) -> np.ndarray:
     """Per-print weights (mean 1) that make the weighted mean of per-print mismatch the
     ``objective`` (``OBJECTIVES``): ones for the paper's mismatch, and for pixel_error
@@ -557,12 +574,12 @@ def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, pe
     tests = np.array_split(perm, k)
     trains = [np.setdiff1d(np.arange(B), test) for test in tests]
     fits = runner.run([(train, None, seed + 1000 + i, f"cv fold {i}") for i, train in enumerate(trains)])
+    bases, ts = mask_heldout(data.masks, data.prints, tests, objective, floor, weights)
     rows, sims_all, base_all, order = [], [], [], []
-    for i, (test, train, fit) in enumerate(zip(tests, trains, fits)):
+    for i, (test, train, fit, t) in enumerate(zip(tests, trains, fits, ts)):
         with torch.no_grad():
             sims = full.subset(test).sim.prints(m.theta(fit.values, device))[0].cpu().numpy()
-        t = mask_threshold(data.masks[train], data.prints[train], objective, floor, weights[train])
-        base = data.masks[test] >= t
+        base = bases[test]
         err = per_print_error(sims, data.prints[test], objective, floor, weights[test])
         err_base = per_print_error(base, data.prints[test], objective, floor, weights[test])
         for j, sim, b, e, eb in zip(test, sims, base, err, err_base):
