@@ -105,7 +105,7 @@ def mask_threshold(masks: np.ndarray, prints: np.ndarray, objective: str = "mism
         err = xor / npx * w[:, None]
     e = err.mean(axis=0)
     best = np.flatnonzero(e <= e.min() * (1 + 1e-12) + 1e-300)
-    run = best[: int(np.argmax(np.diff(best) > 1)) + 1] if len(best) > 1 and (np.diff(best) > 1).any() else best
+    run = np.split(best, np.flatnonzero(np.diff(best) > 1) + 1)[0]  # the first run of tied t
     return int(run[len(run) // 2]) + 1
 
 
@@ -602,7 +602,7 @@ def cross_validate(data, full: Objective, refit: dict, seed: int, folds: int, pe
                    mask_baseline=dict(
                        heldout_error=mask_error, heldout_iou_mean=float(np.mean([r["mask_iou"] for r in rows])),
                        heldout_iou_pooled=metrics.pooled_iou(base_all, data.prints[order]),
-                       thresholds=sorted({int(r["mask_threshold"]) for r in rows}),
+                       thresholds=sorted(set(ts)),
                        note="the mask itself printed where its grey level >= t, t chosen on each fold's training prints "
                             "by the objective: no printer model"),
                    beats_mask=bool(error < mask_error))
