@@ -32,6 +32,8 @@ true prints of the trial masks, as (registered area - true area) / true edge len
 ``--declare-dense`` writes the lab's fully cured polymer level over its background
 (1 / the microscope's background) into batch.yaml as ``dense_level``, as a lab that
 measured it would: the registration then thresholds at that level instead of its estimate.
+``--declare-blur`` writes the lab's microscope blur at the sample (``lab.run.psf_sigma_um``)
+as ``microscope_blur_um``: the chain's calibration then holds it instead of fitting it.
 
 Writes ``bias.tsv`` (a row per lab), ``labs.yaml`` and ``summary.txt`` under ``--out``.
 """
@@ -79,6 +81,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.io import read_print, read_tsv, read_yaml, write_png, write_yaml
     from unscatter.lab import Printer, load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
+    from unscatter.lab.run import psf_sigma_um
     from unscatter.masks import test_pattern_masks, trial_masks
     from unscatter.metrics import area_bias_px, iou
     from unscatter.model import default_params, simulate
@@ -105,6 +108,9 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
         if a.declare_dense:  # the lab's fully cured polymer over its background (the microscope's units)
             meta = read_yaml(d / "batch" / "batch.yaml")
             write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_level": round(1.0 / float(cfg["microscope"]["background"]), 4)})
+        if a.declare_blur:  # the lab's microscope blur at the sample, as a lab that imaged beads would state it
+            meta = read_yaml(d / "batch" / "batch.yaml")
+            write_yaml(d / "batch" / "batch.yaml", {**meta, "microscope_blur_um": psf_sigma_um(cfg["microscope"], px)})
     t_print = time.perf_counter() - t0
     t0 = time.perf_counter()
     qc = read_tsv(d / "reg" / "qc.tsv") if reuse else register_batch(d / "batch", d / "reg", skip_failed=True, progress=False, threads=1)
@@ -226,6 +232,9 @@ def main(argv=None) -> None:
                     "(same --seed): only the calibrations run again")
     ap.add_argument("--declare-dense", action="store_true", help="write the lab's dense level (fully cured polymer over "
                     "its background) into batch.yaml as dense_level, as a lab that measured it would")
+    ap.add_argument("--declare-blur", action="store_true", help="write the lab's microscope blur at the sample into "
+                    "batch.yaml as microscope_blur_um (lab.run.psf_sigma_um), as a lab that imaged beads would: the "
+                    "chain's calibration then holds it instead of fitting it")
     ap.add_argument("--keep", action="store_true", help="keep each lab's batch, registration and calibrations")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "calibration_bias")
     a = ap.parse_args(argv)

@@ -4,6 +4,7 @@ how much does it lower the held-out error, and how long does it take.
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
     python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--registered]
         [--trial designed [--criterion d|discrimination] [--noise edge|pixel]] [--workers N] [--sigma-um LO,HI]
+        [--declare-blur]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
 reproduces it, with the same N). Each lab is ``unscatter.lab.random_lab`` (cure, kernel, noise and field
@@ -305,7 +306,8 @@ def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
     return out
 
 
-def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int) -> tuple[Path, dict]:
+def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int,
+                      declare_blur: bool = False) -> tuple[Path, dict]:
     """The trial masks printed and imaged by the whole random lab (``random_lab``'s
     microscope, camera and metadata drawn from ``lab_seed`` as ``random_effect_lab``
     drew its printer, with that printer), and registered as the workflow does: the
@@ -318,6 +320,8 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
     from unscatter.lab.random import describe_lab
 
     full = dict(random_lab(np.random.default_rng(lab_seed)), printer=over["printer"])
+    if declare_blur:  # batch.yaml states the microscope's blur (lab.run.psf_sigma_um): the calibration holds it
+        full["microscope"] = dict(full["microscope"], declare_blur=True)
     for mid, m in trial.items():
         write_png(d / "masks" / f"{mid}.png", m)
     print_batch(d / "masks", d / "batch", overrides=full, seed=lab_seed, progress=False)
@@ -370,6 +374,7 @@ def random_labs(args) -> None:
     root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
                                                           f"{_designed_tag(args)}{'_registered' if args.registered else ''}"
                                                           f"{'_sigma' + args.sigma_um.replace(',', '-') if args.sigma_um else ''}"
+                                                          f"{'_blur' if args.declare_blur else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -380,6 +385,7 @@ def random_labs(args) -> None:
            + (f" --criterion {args.criterion}" if args.trial == "designed" and args.criterion != "d" else "")
            + (f" --noise {args.noise}" if args.trial == "designed" and args.noise else "")
            + (" --registered" if args.registered else "") + (f" --sigma-um {args.sigma_um}" if args.sigma_um else "")
+           + (" --declare-blur" if args.declare_blur else "")
            + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -426,7 +432,7 @@ def random_labs(args) -> None:
         effect_iou = float(np.mean([metrics.iou(a[k], b[k]) for k in ho_masks]))
         reg = {}
         if args.registered:  # the trial prints through the lab's microscope and the registration
-            prints, reg = _registered_batch(d, trial, over, lab_seed, size)
+            prints, reg = _registered_batch(d, trial, over, lab_seed, size, args.declare_blur)
         else:
             prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"], **reg))
@@ -629,6 +635,10 @@ def main():
     ap.add_argument("--sigma-um", default=None, metavar="LO,HI",
                     help="random labs: draw the scattering sigma log-uniformly over LO..HI um instead of the random lab's "
                          "range (e.g. 1,4: a sharp printer, where the mask itself is a strong baseline)")
+    ap.add_argument("--declare-blur", action="store_true",
+                    help="--registered: the lab's batch.yaml states its microscope's blur (microscope_blur_um), as a lab "
+                         "that imaged beads would; the calibration then fits through the measurement stage, holding it "
+                         "(output folder suffix _blur)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

@@ -274,3 +274,25 @@ def test_an_8bit_labs_declared_offset_is_what_its_dark_frame_reads():
         assert dark_level(dict(mic, format="tif16")) == offset
     lab7 = dict(mic, offset_adu=647.9, read_noise_e=7.5)  # lab 7 of the registration benchmark's seed 434016831
     assert abs(dark_level(lab7) - 647.9 / 256) > 0.4  # not what was declared before (offset / 256)
+
+
+def test_a_lab_states_its_microscope_blur_only_when_told_to():
+    """``declare_blur``: batch.yaml's microscope_blur_um is the Gaussian sigma at the sample
+    that the lab's microscope applies (a point's image, measured by its second moment, at
+    one magnification); the default lab states none (its runs stay as they were)."""
+    from unscatter.lab.run import batch_yaml
+
+    cfg = load_config()
+    assert "microscope_blur_um" not in batch_yaml(cfg, {}, "lab.yaml")
+    px = cfg["batch"]["pixel_size_um"]
+    mic = dict(cfg["microscope"], image_size=[96, 96], blur_px=[1.5, 1.5], scale=[1.0, 1.0], photons=1e5, background=0.0,
+               read_noise_e=0.0, vignetting=[0.0, 0.0], lamp_jitter=0.0, offset_adu=0.0)
+    rho = np.zeros((96, 96))
+    rho[48, 48] = 1.0
+    img = _image(mic, rho)
+    yy, xx = np.mgrid[0:96, 0:96]
+    w = img / img.sum()
+    cy, cx = (w * yy).sum(), (w * xx).sum()
+    sd_px = np.sqrt(0.5 * (w * ((yy - cy) ** 2 + (xx - cx) ** 2)).sum())
+    stated = batch_yaml(dict(cfg, microscope=mic | {"declare_blur": True}), {}, "lab.yaml")["microscope_blur_um"]
+    assert stated / px == pytest.approx(sd_px, rel=0.03), (stated / px, sd_px)

@@ -26,12 +26,16 @@ The objective, the search, the refinement, the folds and the bootstrap live in
 ``unscatter.prints``; this module runs them for Eq. 1 and writes the calibration's
 outputs.
 
-The measured prints are thresholded microscope images, not the cure. With the setting
-``measurement`` = "registration" (opt-in; the default "none" fits the prints as if they
-were the cure, the paper's way), prints whose ``registration.yaml`` records its
-measurement are fitted through a measurement stage (``unscatter.measurement``: the
-density from Eq. 1's dose, blurred by the microscope, at the registration's level),
-whose blur is fitted by a profile after the GA (``_profile_blur``). The fitted
+The measured prints are thresholded microscope images, not the cure. Prints whose
+``registration.yaml`` records its measurement can be fitted through a measurement stage
+(``unscatter.measurement``: the density from Eq. 1's dose, blurred by the microscope, at
+the registration's level). The setting ``measurement``: "none" fits the prints as if
+they were the cure (the paper's way); "auto" (the default) does so too, but where the
+fitted sigma is no larger than the measurement's own blur (``_resolution``: the prints
+do not resolve the scattering) it fits them again through the stage, the microscope's
+blur held as batch.yaml states it (``microscope_blur_um``) or else as the registration's
+print template measured it; "registration" always fits through the stage, holding a
+stated blur, else fitting it by a profile after the GA (``_profile_blur``). The fitted
 parameters are Eq. 1's alone; params.yaml records the stage under ``measurement``.
 
 Inputs are registration outputs (``<id>.png`` prints in mask coordinates, ``qc.tsv``,
@@ -43,6 +47,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -184,18 +189,25 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     log.info("calibrating %s on %d prints (%dx%d): GA on a %dx%d grid", model, B, H, W, H // f_ga, W // f_ga)
 
     printer_params, printer_model = params, m
-    meas = _measurement(s["measurement"], data)
-    m, sim, obj = _objectives(model, data.masks, data.prints, support, meas, device, s)
-    if meas is not None:
-        # the measured print is the density blurred at the registration's level: fit it so, the
-        # microscope's blur (unless given) along with the printer's parameters
-        log.info("fitting through the measurement: %s", meas.as_dict())
-        # the search holds the blur (at the registration's estimate); the profile below fits it
-        params = Params(params.model, {**params.values, BLUR: float(np.clip(meas.blur_px, *meas.blur_bounds))},
-                        {**params.bounds, BLUR: tuple(meas.blur_bounds)}, (*params.fixed, BLUR), params.pixel_size_um)
-        space = Space(params)
 
-    full = obj(1)
+    def through(meas):
+        """The model, its simulator, objectives, parameters and search space, fitted
+        through the measurement ``meas`` (or without one)."""
+        m, sim, obj = _objectives(model, data.masks, data.prints, support, meas, device, s)
+        p = printer_params
+        if meas is not None:
+            # the measured print is the density blurred at the registration's level: fit it so, the
+            # microscope's blur (unless given) along with the printer's parameters
+            log.info("fitting through the measurement: %s", meas.as_dict())
+            # the search holds the blur (at the registration's estimate, or as stated); the profile below fits it
+            b0 = float(np.clip(meas.blur_px, *meas.blur_bounds)) if meas.fit_blur else float(meas.blur_px)
+            p = Params(p.model, {**p.values, BLUR: b0},
+                       {**p.bounds, BLUR: (min(meas.blur_bounds[0], b0), max(meas.blur_bounds[1], b0))},
+                       (*p.fixed, BLUR), p.pixel_size_um)
+        return m, sim, obj, p, Space(p)
+
+    meas = _measurement(s["measurement"], data)
+    m, sim, obj, params, space = through(meas)
     run_warnings: list[str] = []
     if B < 8:
         run_warnings.append(f"only {B} usable prints: the fit and its uncertainty rest on little data")
@@ -204,8 +216,31 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     t0 = time.perf_counter()
     fit = fit_params(space, m, obj, f_ga, f_ref if s["refine"] else None, 1, device, seed, s,
                      s["population"], s["generations"], desc="calibration GA")
-    t_fit = time.perf_counter() - t0
     values = fit.values
+    switched = None
+    if meas is None and s["measurement"] == "auto" and "sigma_px" in space.names:
+        # prints that do not resolve the scattering (its sigma within the measurement's own blur) are fitted
+        # again through the measurement, its blur held: as stated, else as the registration's template measured it
+        first = _resolution(values, data, None)
+        try:
+            held = _measurement("registration", data) if first and not first["resolved"] else None
+        except InputError:  # folders that record it differently: no one measurement to fit through
+            held = None
+        if held is not None:
+            meas = replace(held, fit_blur=False)
+            switched = dict(first_sigma_px=round(float(values["sigma_px"]), 4), first_objective=float(fit.objective),
+                            measurement_blur_px=first["measurement_blur_px"],
+                            blur=("stated (batch.yaml microscope_blur_um)" if not held.fit_blur else
+                                  "the registration's print template's"))
+            log.warning("sigma_px = %.3g is within the measurement's own blur (%.3g px): these prints do not resolve the "
+                        "scattering; fitted again through the measurement stage, the microscope's blur held at %.3g px (%s)",
+                        values["sigma_px"], first["measurement_blur_px"], meas.blur_px, switched["blur"])
+            m, sim, obj, params, space = through(meas)
+            fit = fit_params(space, m, obj, f_ga, f_ref if s["refine"] else None, 1, device, seed, s,
+                             s["population"], s["generations"], desc="calibration GA, through the measurement")
+            values = fit.values
+    full = obj(1)
+    t_fit = time.perf_counter() - t0
     profile = []
     if meas is not None and meas.fit_blur:
         values, profile = _profile_blur(params, m, obj, fit, f_ref if s["refine"] else None, device, s, meas)
@@ -248,11 +283,20 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         run_warnings.append(unc["note"])
     run_warnings += _against_mask(model, cv_summary, s["objective"])
     resolution = _resolution(values, data, meas) if "sigma_px" in space.names else None  # a fitted sigma only
-    if resolution and not resolution["resolved"]:
+    if switched:
+        resolution = dict(first, switched=True)
+        run_warnings.append(
+            f"the first fit's sigma_px = {switched['first_sigma_px']:.3g} was no larger than the measurement's own blur "
+            f"({switched['measurement_blur_px']:.3g} design px): these prints do not resolve the scattering, so the "
+            f"calibration fitted them again through the measurement stage, the microscope's blur held at "
+            f"{meas.blur_px:.3g} px ({switched['blur']}); sigma_px is now {values['sigma_px']:.3g}. "
+            + ("" if switched["blur"].startswith("stated") else "Stating the microscope's blur (batch.yaml "
+               "microscope_blur_um, measured on beads) makes this surer. ") + "See README, 'A stated microscope blur'")
+    if resolution and not resolution["resolved"] and not switched:
         run_warnings.append(
             f"sigma_px = {values['sigma_px']:.3g} is no larger than the measurement's own blur "
-            f"({resolution['measurement_blur_px']:.3g} design px: the microscope's blur as the registration's print template "
-            f"measured it, with the registration's smoothing): these prints do not resolve the scattering, and the fit "
+            f"({resolution['measurement_blur_px']:.3g} design px: the microscope's blur as the registration's print "
+            f"template measured it, with the registration's smoothing): these prints do not resolve the scattering, and the fit "
             f"takes the microscope's blur for it. Against the real cure such a model can predict worse than the mask "
             f"itself; image the prints at a higher magnification (README, 'Scattering the microscope does not resolve')")
     for w in run_warnings:
@@ -292,6 +336,8 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
     if meas is not None:
         fitted.info["measurement"] = dict(
             meas.as_dict(), profile=[{k: round(v, 6) for k, v in r.items()} for r in profile],
+            **({"switched": dict(switched, note="measurement 'auto': the prints did not resolve the scattering")}
+               if switched else {}),
             note="fitted through this measurement stage (unscatter.measurement): the measured print is the density, "
                  "blurred, at the level; the parameters are the printer's, without it")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -315,24 +361,30 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
 
 def _resolution(values: dict, data: PrintSet, meas: Measurement | None) -> dict | None:
     """Does the fitted scattering exceed what the measurement itself blurs? The prints'
-    registrations record the microscope's blur (their print template's) and their own
-    smoothing; where the fitted sigma is no larger than the two together, the prints
-    cannot tell scattering from the microscope. None where nothing is recorded, the model
-    has no sigma, or the fit went through the measurement stage (which fits the blur);
-    the caller asks only where sigma was fitted."""
+    registrations record the microscope's blur as their print template measured it and
+    their own smoothing; where the fitted sigma is no larger than the two together, the
+    prints cannot tell scattering from the microscope. The template's blur, not a blur
+    batch.yaml states: the registered prints are blurred by more than the optics (the
+    camera's pixels, the warps' interpolation), which the template's blur holds and a
+    stated PSF does not (on the sharp random labs the stated blur was 0.3 to 0.8 of the
+    template's; README, 'A stated microscope blur'). None where nothing is recorded, the
+    model has no sigma, or the fit went through the measurement stage; the caller asks
+    only where sigma was fitted."""
     if meas is not None or "sigma_px" not in values:
         return None
-    try:
-        rec = _measurement("registration", data)
-    except InputError:  # some folders record none, or at different levels: nothing one number can say
-        return None
-    if rec is None:
-        return None
-    b = float(np.hypot(rec.blur_px, rec.smoothing_px))
+    recs = []
+    for d in data.prints_dirs:
+        f = Path(d) / "registration.yaml"
+        mm = (read_yaml(f) or {}).get("measurement") if f.is_file() else None
+        if not isinstance(mm, dict) or mm.get("blur_px") is None:
+            return None  # some folders record none: nothing one number can say
+        recs.append(mm)
+    b = float(np.hypot(np.mean([float(r["blur_px"]) for r in recs]), np.mean([float(r.get("smoothing_px", 0.0)) for r in recs])))
     return dict(measurement_blur_px=round(b, 4), sigma_px=float(values["sigma_px"]),
                 resolved=bool(values["sigma_px"] > RESOLVED_RATIO * b),
-                note="the fitted sigma against the microscope's blur (registration.yaml) and the registration's smoothing "
-                     "in quadrature: at or below it the prints do not resolve the scattering")
+                note="the fitted sigma against the microscope's blur as the registration's print template measured it "
+                     "(registration.yaml) and the registration's smoothing, in quadrature: at or below it the prints do "
+                     "not resolve the scattering")
 
 
 RESOLVED_RATIO = 1.0  # a fitted sigma at most this times the measurement's own blur is not resolved
@@ -448,12 +500,12 @@ def _measurement(setting, data: PrintSet) -> Measurement | None:
     """The measurement stage of a calibration (setting ``measurement``): a Measurement as
     given, none, or what the prints' registrations record (registration.yaml; several
     registrations: their mean numbers, one level). None where no registration recorded one."""
-    if setting is None or setting == "none":
+    if setting is None or setting in ("none", "auto"):  # auto: the first fit without it (``_calibrate`` may switch)
         return None
     if isinstance(setting, Measurement):
         return setting
     if setting != "registration":
-        raise ValueError(f"measurement must be 'registration', 'none' or a Measurement, got {setting!r}")
+        raise ValueError(f"measurement must be 'auto', 'registration', 'none' or a Measurement, got {setting!r}")
     found, missing = [], []
     for d in data.prints_dirs:
         f = Path(d) / "registration.yaml"
@@ -466,8 +518,12 @@ def _measurement(setting, data: PrintSet) -> Measurement | None:
                          "calibrate them apart, or set the calibration's measurement to 'none'")
     if len({m.level for m in found}) > 1:
         raise InputError(Path(data.prints_dirs[0]), "the registrations thresholded at different levels; calibrate them apart")
+    if len({m.fit_blur for m in found}) > 1:
+        raise InputError(Path(data.prints_dirs[[m.fit_blur for m in found].index(True)]) / "registration.yaml",
+                         "records no microscope blur stated by its batch (batch.yaml microscope_blur_um) while the other "
+                         "prints folders do; state it for every batch, or for none")
     mean = {k: float(np.mean([getattr(m, k) for m in found])) for k in ("blur_px", "smoothing_px", "gel_share")}
-    return Measurement(level=found[0].level, **mean)
+    return Measurement(level=found[0].level, fit_blur=found[0].fit_blur, **mean)
 
 
 def _simulated(m, full: Objective, values, device) -> np.ndarray:

@@ -90,8 +90,7 @@ from .fitting import (
     residual_rgb,
 )
 from .io import InputError, output_dir, write_tsv
-from .prints import load_prints
-from .settings import DIAGNOSIS
+from .measurement import MeasuredMasks, MeasuredModel, Measurement
 from .model import (
     EFFECTS,
     FixedMasks,
@@ -107,6 +106,8 @@ from .model import (
     save_params,
     split_model_name,
 )
+from .prints import load_prints
+from .settings import DIAGNOSIS
 
 log = logging.getLogger(__name__)
 
@@ -194,6 +195,8 @@ class _Context:
         spectra = shared.setdefault("spectra", {})
         self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support,
                               cache=spectra if keep else dict(spectra))
+        if s.get(MEASUREMENT) is not None:  # the calibration's measurement stage, its blur held (``_measurement_of``)
+            self.sim, self.model = MeasuredMasks(self.sim, s[MEASUREMENT]), MeasuredModel(self.model, s[MEASUREMENT])
         self._objs: dict[int, Objective] = {}
         self.objective, self.area_floor = s["objective"], s["area_floor"]
         self.weights = print_weights(data.prints, s["objective"], s["area_floor"])
@@ -365,6 +368,21 @@ class _Job:
 
 # a worker process's state (``_Fits`` with workers > 1): the prints, the settings, its own caches
 _WORKER: dict = {}
+
+
+MEASUREMENT = "measurement_stage"  # the settings' key of the calibration's measurement stage (a Measurement, or None)
+
+
+def _measurement_of(base: Params) -> Measurement | None:
+    """The measurement stage the base calibration was fitted through (params.yaml's
+    ``measurement``), its blur held at the calibration's (stated or fitted): the
+    diagnosis's fits then predict the measured prints as the calibration's did, and its
+    parameters stay the printer's. None where it was fitted without one."""
+    rec = (base.info or {}).get("measurement")
+    if not isinstance(rec, dict):
+        return None
+    return Measurement(blur_px=float(rec["blur_px"]), smoothing_px=float(rec.get("smoothing_px", 0.0)),
+                       gel_share=float(rec.get("gel_share", 0.6)), level=float(rec.get("level", 0.5)), fit_blur=False)
 
 
 def _worker_init(data, s: dict) -> None:
@@ -1028,6 +1046,9 @@ def _diagnose(prints_dirs, base_params, out_dir: Path, seed: int, candidates, pr
         base_params = load_params(base_path)
     base = Params(base_params.model, dict(base_params.values), dict(base_params.bounds), tuple(base_params.fixed),
                   base_params.pixel_size_um or data.pixel_size_um, {})
+    s[MEASUREMENT] = _measurement_of(base_params)
+    if s[MEASUREMENT] is not None:
+        log.info("fitting through the calibration's measurement stage: %s", s[MEASUREMENT].as_dict())
     recorded = (base_params.info or {}).get("objective") or {}
     recorded = recorded if isinstance(recorded, dict) else {}
     if s["objective"] is None:
@@ -1208,7 +1229,10 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
                             f"mismatch rate, and a per-bin margin correction (for the position a smooth field of "
                             f"{s['field_basis']} x {s['field_basis']} bumps) fitted on training prints removes >= "
                             f"{s['structure_gain']:.1%} of the held-out error (see unscatter.diagnosis)"),
-            settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("device",)},
+            settings={k: (list(v) if isinstance(v, tuple) else v) for k, v in s.items() if k not in ("device", MEASUREMENT)},
+            **({} if s[MEASUREMENT] is None else {"measurement": dict(
+                s[MEASUREMENT].as_dict(), note="fitted through the calibration's measurement stage, its blur held "
+                                               "(unscatter.measurement): the parameters are the printer's, without it")}),
         ),
     )
     save_params(out_dir / "model.yaml", final, **info)

@@ -329,6 +329,7 @@ BATCH_FIELDS = {
     "image_pixel_size_tolerance": (False, _tolerance),  # how far (relative) any stated camera pixel size may be off
     "image_rotation_deg": (False, _rotation),
     "dense_level": (False, _number),  # fully cured polymer's fluorescence over the background (registration)
+    "microscope_blur_um": (False, _number),  # the microscope's blur at the sample: its PSF's Gaussian sigma (calibration)
     "layer_um": (False, _number),
     "z_step_um": (False, _number),
     "source_batch": (False, _text),  # registration: the batch the prints come from
@@ -351,6 +352,7 @@ class BatchMeta:
     image_pixel_size_tolerance: float | None = None
     image_rotation_deg: tuple[float, float] | None = None
     dense_level: float | None = None
+    microscope_blur_um: float | None = None
     layer_um: float | None = None
     z_step_um: float | None = None
     source_batch: str | None = None

@@ -25,8 +25,10 @@ is the Gaussian blur between the density and the thresholded image, in design pi
 
 Where the numbers come from: ``registration.yaml`` records the microscope blur the
 registration measured (``measurement``: the blur of the images, the smoothing it applies
-before the threshold, the gel share of its print template); ``from_registration`` reads
-them. The printer model never sees the microscope: the stage wraps its evaluator
+before the threshold, the gel share of its print template), and the blur batch.yaml
+states (``microscope_blur_um``: the PSF's Gaussian sigma at the sample, recorded as
+``declared_blur_px``), which the calibration then holds instead of fitting it;
+``from_registration`` reads them. The printer model never sees the microscope: the stage wraps its evaluator
 (``MeasuredMasks``), and ``simulate`` (the calibrated model) prints without it.
 """
 
@@ -129,14 +131,15 @@ def measured(dose: torch.Tensor, theta: Theta, m: Measurement, step: int = 1, te
 class MeasuredModel:
     """A printer model with the measurement's blur as one more parameter (``BLUR``), so
     the calibration's search fits it with the printer's; everything else is the
-    printer model's."""
+    printer model's. A held blur (``fit_blur`` false: stated, or the calibration's in
+    the diagnosis) is no parameter: the stage's own value is used."""
 
     def __init__(self, model, m: Measurement):
         self.inner, self.m = model, m
 
     @property
     def names(self) -> list[str]:
-        return list(self.inner.names) + [BLUR]
+        return list(self.inner.names) + ([BLUR] if self.m.fit_blur else [])
 
     def theta(self, values, device=None) -> Theta:
         th = self.inner.theta(values, device)
@@ -222,8 +225,10 @@ def from_registration(meta: dict | None) -> Measurement | None:
     if not meta or not isinstance(meta.get("measurement"), dict):
         return None
     mm = meta["measurement"]
-    return Measurement(blur_px=float(mm.get("blur_px", 1.0)), smoothing_px=float(mm.get("smoothing_px", 0.0)),
-                       gel_share=float(mm.get("gel_share", 0.6)), level=float(mm.get("level", 0.5)))
+    declared = mm.get("declared_blur_px")
+    return Measurement(blur_px=float(mm.get("blur_px", 1.0) if declared is None else declared),
+                       smoothing_px=float(mm.get("smoothing_px", 0.0)), gel_share=float(mm.get("gel_share", 0.6)),
+                       level=float(mm.get("level", 0.5)), fit_blur=declared is None)
 
 
 __all__ = ["Measurement", "MeasuredMasks", "MeasuredModel", "BLUR", "density", "blur", "measured", "from_registration"]

@@ -317,12 +317,16 @@ CALIBRATION = Stage(
                       "dice - 1 - Dice per print (IoU's twin). The diagnosis scores held-out prints with the same one. "
                       "On random labs mismatch named the effects as well or better (benchmarks/bench_diagnosis.py)."),
     refine=_bool(True, "Gradient refinement (L-BFGS on a smooth threshold) after the GA.", workflow=False),
-    measurement=_choice("none", ("registration", "none"),
+    measurement=_choice("auto", ("auto", "registration", "none"),
                         "The measurement between the simulated cure and the measured print (unscatter.measurement): "
-                        "none - the measured prints taken for the cure itself (the paper's; the default until the "
-                        "stage wins on random labs, see the README); registration - the density blurred by the "
-                        "microscope (its blur fitted) and thresholded at the registration's level, as "
-                        "registration.yaml records it (prints without one: none).", workflow=False),
+                        "auto - as none, but where the fitted sigma is no larger than the blur the registration's "
+                        "template measured (the prints do not resolve the scattering) fitted again through the "
+                        "measurement, the microscope's blur held: as batch.yaml states it (microscope_blur_um), else as "
+                        "the template measured it; registration - the density blurred "
+                        "by the microscope (the stated blur held, else fitted) and thresholded at the registration's "
+                        "level, as registration.yaml records it (prints without one: none); none - the measured prints "
+                        "taken for the cure itself (the paper's). See the README, 'The measurement in the calibration'.",
+                        workflow=False),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
     workers=_int(None, "Processes that run the refits of the folds and the bootstrap at once, each on one torch thread; "
                  "null - one per CPU core (1 on a GPU). With threads 1 the result does not depend on it.",

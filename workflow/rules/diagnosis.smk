@@ -16,7 +16,7 @@ rule diagnose:
         folds=config["diagnosis"]["folds"],
         seed=config["diagnosis"]["seed"],
         quick=config["diagnosis"]["quick"],
-        code=code_version("diagnosis", "fitting", "prints", "model", "io", "metrics"),
+        code=code_version("diagnosis", "measurement", "fitting", "prints", "model", "io", "metrics"),
     threads: 2  # its fits run in one process a thread, each on one torch thread (unscatter.diagnosis.DEFAULTS workers)
     resources:
         mem_mb=11000,  # the process and its 2 workers: 7,967 and 9,734 MB at most (summed over the processes) in two default runs (results/benchmarks/diagnose.tsv)

@@ -586,18 +586,24 @@ def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int):
     return reg, reg_s >= thr
 
 
-def measurement_record(template: dict, rows: list[dict], level: float) -> dict:
+def measurement_record(template: dict, rows: list[dict], level: float, meta=None) -> dict:
     """What a calibration needs to simulate this measurement (``unscatter.measurement``),
     for registration.yaml: the microscope's blur as the print template measured it (the
     median focus blur of the ok prints, design px; a calibration fits it, starting here),
     the smoothing before the threshold (median, design px), the gel dose as a share of
-    the dose at which the template's cure reaches half of saturation, and the level."""
+    the dose at which the template's cure reaches half of saturation, and the level.
+    Where batch.yaml states the microscope's blur (``microscope_blur_um``, ``meta``), it
+    is recorded in design px as ``declared_blur_px``: a calibration through the
+    measurement holds it instead of fitting one."""
     ok = [r for r in rows if r["status"] == "ok" and r.get("blur") not in ("", None)]
     blur = float(np.median([float(r["blur"]) for r in ok])) if ok else float(template["blur"])
     smooth = float(np.median([smoothing_px(float(r["scale"])) for r in ok])) if ok else 0.5
     gel, k = max(float(template["gel"]), 0.0), max(float(template["k"]), 1e-3)
-    return dict(blur_px=round(blur, 4), smoothing_px=round(smooth, 4),
-                gel_share=round(float(np.clip(gel / (gel - k * np.log1p(-level)), 0.1, 0.9)), 4), level=float(level))
+    out = dict(blur_px=round(blur, 4), smoothing_px=round(smooth, 4),
+               gel_share=round(float(np.clip(gel / (gel - k * np.log1p(-level)), 0.1, 0.9)), 4), level=float(level))
+    if meta is not None and meta.microscope_blur_um is not None:
+        out["declared_blur_px"] = round(float(meta.microscope_blur_um) / float(meta.pixel_size_um), 4)
+    return out
 
 
 def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
@@ -1236,7 +1242,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
                                                    flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
                                                    template_prints=template_prints,
-                                                   measurement=measurement_record(p, rows, s.level),
+                                                   measurement=measurement_record(p, rows, s.level, batch.meta),
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed),
                                                        held_within=held_scale[1]),

@@ -45,6 +45,15 @@ def dark_level(mic: dict, samples: int = 200_000) -> float:
     return round(float(dark.mean()), 4)
 
 
+def psf_sigma_um(mic: dict, mask_um: float) -> float:
+    """The microscope's blur at the sample (um), as a lab would state it: the Gaussian
+    sigma that ``image_print`` applies (the optics' PSF and the camera's sampling), at the
+    middle of the lab's focus blur and of its magnifications (geometric)."""
+    s = float(np.sqrt(mic["scale"][0] * mic["scale"][1]))
+    blur = 0.5 * (mic["blur_px"][0] + mic["blur_px"][1])
+    return float(f"{np.hypot(blur / s, max(0.0, 0.5 * (1 / s - 1))) * mask_um:.4g}")
+
+
 def batch_yaml(cfg: dict, exposures: dict, source) -> dict:
     """The batch.yaml the lab writes, checked as registration will check it (``source``,
     the lab config, is named when a value there is wrong)."""
@@ -52,6 +61,8 @@ def batch_yaml(cfg: dict, exposures: dict, source) -> dict:
     out = dict(meta)
     if mic.get("declare_offset", True):
         out["camera_offset_adu"] = dark_level(mic)
+    if mic.get("declare_blur", False):
+        out["microscope_blur_um"] = psf_sigma_um(mic, float(out["pixel_size_um"]))
     md = mic.get("pixel_size_metadata")
     if md:
         if md["where"] == "batch":  # one objective: the camera pixel at the sample, as calibrated
