@@ -217,7 +217,7 @@ def test_the_diagnosis_fits_through_the_calibrations_measurement(blurred_lab, tm
     try:
         write_yaml(root / "registration.yaml", dict(measurement=dict(blur_px=0.8, smoothing_px=0.0, gel_share=0.6,
                                                                      level=0.5, declared_blur_px=truth["blur_px"])))
-        calibrate(root, tmp_path / "cal", seed=0, **FIT)
+        calibrate(root, tmp_path / "cal", seed=0, measurement="registration", **FIT)
         r = diagnose(root, tmp_path / "cal" / "params.yaml", tmp_path / "diag", quick=True, candidates=["edge_offset"],
                      progress=False, figures=False, workers=1, seed=0)
     finally:
