@@ -320,7 +320,8 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
     from unscatter.lab.random import describe_lab
 
     full = dict(random_lab(np.random.default_rng(lab_seed)), printer=over["printer"])
-    if declare_blur:  # batch.yaml states the microscope's blur (lab.run.psf_sigma_um): the calibration holds it
+    if declare_blur:  # batch.yaml states the microscope's blur (lab.run.psf_sigma_um): a calibration through the
+        # measurement holds it
         full["microscope"] = dict(full["microscope"], declare_blur=True)
     for mid, m in trial.items():
         write_png(d / "masks" / f"{mid}.png", m)
@@ -637,7 +638,8 @@ def main():
                          "range (e.g. 1,4: a sharp printer, where the mask itself is a strong baseline)")
     ap.add_argument("--declare-blur", action="store_true",
                     help="--registered: the lab's batch.yaml states its microscope's blur (microscope_blur_um), as a lab "
-                         "that imaged beads would; the calibration then fits through the measurement stage, holding it "
+                         "that imaged beads would; where the prints do not resolve the scattering the calibration then "
+                         "fits through the measurement stage holding it, not the registration's template blur "
                          "(output folder suffix _blur)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
