@@ -61,26 +61,9 @@ def test_decimated_evaluator_samples_the_full_one():
 def blurred_lab(tmp_path_factory):
     """Prints of a small-kernel lab (paper physics) measured through a microscope blur
     comparable to its scattering: the lab's density, blurred (scipy), at half of saturation."""
-    from unscatter.lab import Printer, load_config
-
     root = tmp_path_factory.mktemp("blurred")
-    over = {"printer": {"kernel": {"sigma_um": 7.4, "heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
-                        "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0,
-                        "cure": {"threshold": 0.5, "gel_dose": 0.3}}}
-    cfg = load_config(overrides=over)
-    px = cfg["batch"]["pixel_size_um"]
-    size, blur_px = 192, 1.6
-    printer = Printer(cfg["printer"], size, px)
-    rows = []
-    for i, (mid, mask) in enumerate(trial_masks(16, seed=3, size=size).items()):
-        rho = printer.crop(printer.density(mask, np.random.default_rng([7, i])))
-        pr = ndimage.gaussian_filter(rho, blur_px) >= 0.5
-        write_png(root / "masks" / f"{mid}.png", mask)
-        write_png(root / f"{mid}.png", pr)
-        rows.append(dict(id=mid, status="ok" if pr.any() else "empty", reason="", mask=f"masks/{mid}.png"))
-    write_tsv(root / "qc.tsv", rows, ["id", "status", "reason", "mask"])
-    write_yaml(root / "batch.yaml", dict(pixel_size_um=px))
-    return root, dict(sigma_px=7.4 / px, T=0.5, blur_px=blur_px)
+    _, sigma_px = _measured_lab(root, 7.4, 1.6, size=192, seeds=(3, 7))
+    return root, dict(sigma_px=sigma_px, T=0.5, blur_px=1.6)
 
 
 FIT = dict(population=16, generations=8, folds=0, bootstrap=0, residual_maps=False, figure=False, progress=False, threads=1)
@@ -156,9 +139,11 @@ def test_a_stated_microscope_blur_is_held(blurred_lab, tmp_path):
     assert read_yaml(tmp_path / "default" / "params.yaml").get("measurement") is None
 
 
-def _sharp_lab(root, sigma_um, blur_px, n=16, size=160):
-    """Prints of a sharp printer (paper physics) measured through a wider microscope blur:
-    the measured prints (density blurred, at half of saturation) and the cure itself."""
+def _measured_lab(root, sigma_um, blur_px, n=16, size=160, seeds=(5, 9)):
+    """Prints of a lab of paper physics (scattering ``sigma_um``) measured through a
+    microscope blur (the density blurred, at half of saturation), written as a prints
+    folder; returns the cure itself (id -> print) and the lab's sigma in px. ``seeds``:
+    the trial masks' and the cells'."""
     from unscatter.lab import Printer, load_config
 
     over = {"printer": {"kernel": {"sigma_um": sigma_um, "heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
@@ -168,8 +153,8 @@ def _sharp_lab(root, sigma_um, blur_px, n=16, size=160):
     px = cfg["batch"]["pixel_size_um"]
     printer = Printer(cfg["printer"], size, px)
     rows, cured = [], {}
-    for i, (mid, mask) in enumerate(trial_masks(n, seed=5, size=size).items()):
-        rho = printer.crop(printer.density(mask, np.random.default_rng([9, i])))
+    for i, (mid, mask) in enumerate(trial_masks(n, seed=seeds[0], size=size).items()):
+        rho = printer.crop(printer.density(mask, np.random.default_rng([seeds[1], i])))
         pr = ndimage.gaussian_filter(rho, blur_px) >= 0.5
         cured[mid] = rho >= 0.5
         write_png(root / "masks" / f"{mid}.png", mask)
@@ -189,7 +174,7 @@ def test_prints_that_do_not_resolve_the_scattering_are_fitted_through_the_stated
     from unscatter.model import simulate
 
     root = tmp_path / "prints"
-    cured, sigma_px = _sharp_lab(root, 0.9, 2.0)
+    cured, sigma_px = _measured_lab(root, 0.9, 2.0)
     write_yaml(root / "registration.yaml", dict(measurement=dict(blur_px=2.6, smoothing_px=0.5, gel_share=0.6, level=0.5,
                                                                  declared_blur_px=2.0)))
     plain = calibrate(root, tmp_path / "plain", seed=0, measurement="none", **FIT)

@@ -227,14 +227,12 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         except InputError:  # folders that record it differently: no one measurement to fit through
             held = None
         if held is not None:
-            meas = replace(held, fit_blur=False)
+            meas, stated = replace(held, fit_blur=False), not held.fit_blur
             switched = dict(first_sigma_px=round(float(values["sigma_px"]), 4), first_objective=float(fit.objective),
                             measurement_blur_px=first["measurement_blur_px"],
-                            blur=("stated (batch.yaml microscope_blur_um)" if not held.fit_blur else
-                                  "the registration's print template's"))
-            log.warning("sigma_px = %.3g is within the measurement's own blur (%.3g px): these prints do not resolve the "
-                        "scattering; fitted again through the measurement stage, the microscope's blur held at %.3g px (%s)",
-                        values["sigma_px"], first["measurement_blur_px"], meas.blur_px, switched["blur"])
+                            blur=("stated (batch.yaml microscope_blur_um)" if stated else "the registration's print template's"))
+            log.info("sigma_px = %.3g is within the measurement's own blur (%.3g px): fitted again through the measurement "
+                     "stage, the microscope's blur held at %.3g px", values["sigma_px"], first["measurement_blur_px"], meas.blur_px)
             m, sim, obj, params, space = through(meas)
             fit = fit_params(space, m, obj, f_ga, f_ref if s["refine"] else None, 1, device, seed, s,
                              s["population"], s["generations"], desc="calibration GA, through the measurement")
@@ -290,7 +288,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
             f"({switched['measurement_blur_px']:.3g} design px): these prints do not resolve the scattering, so the "
             f"calibration fitted them again through the measurement stage, the microscope's blur held at "
             f"{meas.blur_px:.3g} px ({switched['blur']}); sigma_px is now {values['sigma_px']:.3g}. "
-            + ("" if switched["blur"].startswith("stated") else "Stating the microscope's blur (batch.yaml "
+            + ("" if stated else "Stating the microscope's blur (batch.yaml "
                "microscope_blur_um, measured on beads) makes this surer. ") + "See README, 'A stated microscope blur'")
     if resolution and not resolution["resolved"] and not switched:
         run_warnings.append(
@@ -372,13 +370,9 @@ def _resolution(values: dict, data: PrintSet, meas: Measurement | None) -> dict 
     only where sigma was fitted."""
     if meas is not None or "sigma_px" not in values:
         return None
-    recs = []
-    for d in data.prints_dirs:
-        f = Path(d) / "registration.yaml"
-        mm = (read_yaml(f) or {}).get("measurement") if f.is_file() else None
-        if not isinstance(mm, dict) or mm.get("blur_px") is None:
-            return None  # some folders record none: nothing one number can say
-        recs.append(mm)
+    recs = _recorded(data)
+    if any(r is None or r.get("blur_px") is None for r in recs):
+        return None  # some folders record none: nothing one number can say
     b = float(np.hypot(np.mean([float(r["blur_px"]) for r in recs]), np.mean([float(r.get("smoothing_px", 0.0)) for r in recs])))
     return dict(measurement_blur_px=round(b, 4), sigma_px=float(values["sigma_px"]),
                 resolved=bool(values["sigma_px"] > RESOLVED_RATIO * b),
@@ -496,6 +490,17 @@ def _refit_context(model: str, masks, prints, support: float, meas, device, s: d
     return dict(space=space, model=m, obj=obj, f_ga=f_ga, f_ref=f_ref, device=device, s=s, values=values)
 
 
+def _recorded(data: PrintSet) -> list:
+    """Each prints folder's measurement record (registration.yaml ``measurement``), None
+    where it has none."""
+    out = []
+    for d in data.prints_dirs:
+        f = Path(d) / "registration.yaml"
+        rec = (read_yaml(f) or {}).get("measurement") if f.is_file() else None
+        out.append(rec if isinstance(rec, dict) else None)
+    return out
+
+
 def _measurement(setting, data: PrintSet) -> Measurement | None:
     """The measurement stage of a calibration (setting ``measurement``): a Measurement as
     given, none, or what the prints' registrations record (registration.yaml; several
@@ -507,9 +512,8 @@ def _measurement(setting, data: PrintSet) -> Measurement | None:
     if setting != "registration":
         raise ValueError(f"measurement must be 'auto', 'registration', 'none' or a Measurement, got {setting!r}")
     found, missing = [], []
-    for d in data.prints_dirs:
-        f = Path(d) / "registration.yaml"
-        mm = from_registration(read_yaml(f)) if f.is_file() else None
+    for d, rec in zip(data.prints_dirs, _recorded(data)):
+        mm = from_registration({"measurement": rec})
         (found if mm is not None else missing).append(mm if mm is not None else d)
     if not found:
         return None

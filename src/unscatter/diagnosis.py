@@ -61,7 +61,7 @@ import logging
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -90,7 +90,7 @@ from .fitting import (
     residual_rgb,
 )
 from .io import InputError, output_dir, write_tsv
-from .measurement import MeasuredMasks, MeasuredModel, Measurement
+from .measurement import MeasuredMasks, MeasuredModel, Measurement, from_registration
 from .model import (
     EFFECTS,
     FixedMasks,
@@ -378,11 +378,8 @@ def _measurement_of(base: Params) -> Measurement | None:
     ``measurement``), its blur held at the calibration's (stated or fitted): the
     diagnosis's fits then predict the measured prints as the calibration's did, and its
     parameters stay the printer's. None where it was fitted without one."""
-    rec = (base.info or {}).get("measurement")
-    if not isinstance(rec, dict):
-        return None
-    return Measurement(blur_px=float(rec["blur_px"]), smoothing_px=float(rec.get("smoothing_px", 0.0)),
-                       gel_share=float(rec.get("gel_share", 0.6)), level=float(rec.get("level", 0.5)), fit_blur=False)
+    m = from_registration(base.info)  # params.yaml records the stage as registration.yaml does, the blur it used
+    return None if m is None else replace(m, fit_blur=False)
 
 
 def _worker_init(data, s: dict) -> None:
