@@ -12,7 +12,9 @@ its effects over wide ranges; a new seed each run, printed, ``--seed`` repeats i
    printed and imaged on the lab in one batch and registered as the workflow does
    (failed prints are skipped: a print lost to QC is a print paid for and lost); the
    registration is scored against the lab's true transforms: prints used although
-   silently wrong, and failed prints that were in fact within 1.5 px;
+   silently wrong, and failed prints that were in fact within 1.5 px. With
+   ``--paper-fiducials`` the paper's masks carry the designed masks' registration marks
+   too (``masks.with_fiducials``), so that the two kinds lose prints to registration alike;
 2. for each kind and each n of ``--counts``, Eq. 1 is calibrated on the prints of the
    first n masks (``--full``: the workflow's GA 48 x 30; default: GA 24 x 10, no CV);
 3. the calibrated model prints the held-out masks; its IoU against the lab's true
@@ -102,7 +104,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     from unscatter.io import read_print, write_png
     from unscatter.lab import load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
-    from unscatter.masks import test_pattern_masks, trial_masks
+    from unscatter.masks import test_pattern_masks, trial_masks, with_fiducials
 
     d = root / f"lab{i:02d}"
     over = random_lab(np.random.default_rng(_substream(seed, i, 0)))
@@ -118,7 +120,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
                           progress=False, compare=False)
     t_design = time.perf_counter() - t0
     kinds = {
-        "paper": list(trial_masks(top, seed=_substream(seed, i, 2)).values()),
+        "paper": [with_fiducials(m) if a.paper_fiducials else m for m in trial_masks(top, seed=_substream(seed, i, 2)).values()],
         "designed": list(design["masks"].values()),
     }
     held = list(test_pattern_masks(a.heldout, seed=_substream(seed, i, 3)).values())
@@ -410,6 +412,9 @@ def main(argv=None) -> None:
     ap.add_argument("--strength", choices=("wide", "strong"), default="wide", help="with --effects: their magnitudes")
     ap.add_argument("--no-fiducials", dest="fiducials", action="store_false",
                     help="designed masks without their registration marks (unscatter.masks.fiducial_marks)")
+    ap.add_argument("--paper-fiducials", action="store_true",
+                    help="the paper's random masks with the registration marks too (trial_masks.paper_fiducials; "
+                    "unscatter masks trial --fiducials), so that both kinds are registered alike")
     ap.add_argument("--diagnose", action="store_true", help="the residual diagnosis after each calibration")
     ap.add_argument("--sequential", action="store_true", help="with --diagnose: the next masks designed from the "
                     "last diagnosis, count by count, printed as new batches")
