@@ -32,6 +32,10 @@ true prints of the trial masks, as (registered area - true area) / true edge len
 ``--declare-dense`` writes the lab's fully cured polymer level over its background
 (1 / the microscope's background) into batch.yaml as ``dense_level``, as a lab that
 measured it would: the registration then thresholds at that level instead of its estimate.
+``--dense-reference`` prints a dense reference in each batch instead (``masks.dense_reference_mask``
+at 4 times the exposure, named in batch.yaml as ``dense_reference``), as a lab that prints one
+would: the registration measures the level on it. The registration's dense level against
+the lab's is reported per lab (``dense_err``) either way.
 ``--declare-blur`` writes the lab's microscope blur at the sample (``lab.run.psf_sigma_um``)
 as ``microscope_blur_um``: the chain's calibration then holds it instead of fitting it.
 
@@ -82,7 +86,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.lab import Printer, load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.lab.run import psf_sigma_um
-    from unscatter.masks import test_pattern_masks, trial_masks
+    from unscatter.masks import dense_reference_mask, test_pattern_masks, trial_masks
     from unscatter.metrics import area_bias_px, iou
     from unscatter.model import default_params, simulate
 
@@ -101,10 +105,16 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     for mid, m in trial.items():
         if not a.reuse:
             write_png(d / "masks" / f"{mid}.png", m)
+    if a.dense_reference and not a.reuse:
+        write_png(d / "masks" / "dense_ref.png", dense_reference_mask(a.size))
     t0 = time.perf_counter()
     reuse = a.reuse and (d / "reg" / "qc.tsv").is_file()
     if not reuse:
-        print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 5), progress=False)
+        print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 5), progress=False,
+                    exposures={"dense_ref": 4.0} if a.dense_reference else None)
+        if a.dense_reference:  # a large block cured through, which the registration measures
+            meta = read_yaml(d / "batch" / "batch.yaml")
+            write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_reference": ["dense_ref"]})
         if a.declare_dense:  # the lab's fully cured polymer over its background (the microscope's units)
             meta = read_yaml(d / "batch" / "batch.yaml")
             write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_level": round(1.0 / float(cfg["microscope"]["background"]), 4)})
@@ -154,7 +164,8 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     lab_params = default_params("eq1", pixel_size_um=px).with_values(**lab_vals)
     row = dict(lab=i, failed=len(failed), lab_sigma_px=round(lab_vals["sigma_px"], 3), lab_T=lab_vals["T"],
                edge_bias_px=float(np.median(bias_px)) if bias_px else float("nan"),
-               thin_lost=thin_miss / thin_n if thin_n else float("nan"), print_s=round(t_print, 1), register_s=round(t_reg, 1))
+               thin_lost=thin_miss / thin_n if thin_n else float("nan"), print_s=round(t_print, 1), register_s=round(t_reg, 1),
+               dense_err=float(read_yaml(d / "reg" / "registration.yaml")["dense_level"] * float(cfg["microscope"]["background"]) - 1))
     row["iou_floor"], row["pat_floor"] = score([ho_floor[mid] for mid in ids])
     row["iou_lab_eq1"], row["pat_lab_eq1"] = score(simulate(lab_params, H))
     fit = dict(population=a.population, generations=a.generations, folds=0, bootstrap=0)
@@ -215,6 +226,7 @@ def summarize(seed, rows, cmd) -> str:
                  f"IoU gap to floor median {np.median(gaps) if gaps else np.nan:.4f}, worst {max(gaps) if gaps else np.nan:.4f}; "
                  f"failing (|sigma| > 5 %: {n_sig}, |T| > 5 %: {n_T}, IoU gap > 0.01: {n_iou}) of {len(rows)}")
     L.append(f"edge bias of the registered prints (px per edge px): {dist('edge_bias_px')}; thin features lost: {dist('thin_lost')}")
+    L.append(f"the registration's dense level against the lab's (relative): |error| {dist('dense_err', True)}")
     return "\n".join(L)
 
 
@@ -232,12 +244,17 @@ def main(argv=None) -> None:
                     "(same --seed): only the calibrations run again")
     ap.add_argument("--declare-dense", action="store_true", help="write the lab's dense level (fully cured polymer over "
                     "its background) into batch.yaml as dense_level, as a lab that measured it would")
+    ap.add_argument("--dense-reference", action="store_true", help="print a dense reference in each batch "
+                    "(masks.dense_reference_mask at 4 times the exposure) and name it in batch.yaml as dense_reference, "
+                    "as a lab that prints one would: the registration measures the dense level on it")
     ap.add_argument("--declare-blur", action="store_true", help="write the lab's microscope blur at the sample into "
                     "batch.yaml as microscope_blur_um (lab.run.psf_sigma_um), as a lab that imaged beads would: the "
                     "chain's calibration then holds it instead of fitting it")
     ap.add_argument("--keep", action="store_true", help="keep each lab's batch, registration and calibrations")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "calibration_bias")
     a = ap.parse_args(argv)
+    if a.dense_reference and a.declare_dense:
+        ap.error("--dense-reference measures the dense level that --declare-dense states: give one of them")
     logging.basicConfig(level=logging.ERROR)
     import warnings
 

@@ -307,13 +307,15 @@ def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
 
 
 def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int,
-                      declare_blur: bool = False) -> tuple[Path, dict]:
+                      declare_blur: bool = False, dense_reference: bool = False) -> tuple[Path, dict]:
     """The trial masks printed and imaged by the whole random lab (``random_lab``'s
     microscope, camera and metadata drawn from ``lab_seed`` as ``random_effect_lab``
     drew its printer, with that printer), and registered as the workflow does: the
     prints the calibration and diagnosis get, failed prints skipped. Returns the
     registered folder and what the registration did (against the lab's true poses,
-    ``bench_registration``)."""
+    ``bench_registration``). ``dense_reference``: the batch holds a dense reference
+    (``masks.dense_reference_mask`` at 4 times the exposure, batch.yaml ``dense_reference``),
+    on which the registration measures the fully cured level."""
     import bench_registration
     from unscatter.imaging import register_batch
     from unscatter.lab import print_batch, random_lab
@@ -325,7 +327,15 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
         full["microscope"] = dict(full["microscope"], declare_blur=True)
     for mid, m in trial.items():
         write_png(d / "masks" / f"{mid}.png", m)
-    print_batch(d / "masks", d / "batch", overrides=full, seed=lab_seed, progress=False)
+    if dense_reference:
+        from unscatter.io import read_yaml
+        from unscatter.masks import dense_reference_mask
+
+        write_png(d / "masks" / "dense_ref.png", dense_reference_mask(size))
+    print_batch(d / "masks", d / "batch", overrides=full, seed=lab_seed, progress=False,
+                exposures={"dense_ref": 4.0} if dense_reference else None)
+    if dense_reference:
+        write_yaml(d / "batch" / "batch.yaml", {**read_yaml(d / "batch" / "batch.yaml"), "dense_reference": ["dense_ref"]})
     t0 = time.perf_counter()
     qc = register_batch(d / "batch", d / "prints", skip_failed=True, progress=False)
     t_reg = time.perf_counter() - t0
@@ -376,6 +386,7 @@ def random_labs(args) -> None:
                                                           f"{_designed_tag(args)}{'_registered' if args.registered else ''}"
                                                           f"{'_sigma' + args.sigma_um.replace(',', '-') if args.sigma_um else ''}"
                                                           f"{'_blur' if args.declare_blur else ''}"
+                                                          f"{'_ref' if args.dense_reference else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -387,6 +398,7 @@ def random_labs(args) -> None:
            + (f" --noise {args.noise}" if args.trial == "designed" and args.noise else "")
            + (" --registered" if args.registered else "") + (f" --sigma-um {args.sigma_um}" if args.sigma_um else "")
            + (" --declare-blur" if args.declare_blur else "")
+           + (" --dense-reference" if args.dense_reference else "")
            + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -433,7 +445,7 @@ def random_labs(args) -> None:
         effect_iou = float(np.mean([metrics.iou(a[k], b[k]) for k in ho_masks]))
         reg = {}
         if args.registered:  # the trial prints through the lab's microscope and the registration
-            prints, reg = _registered_batch(d, trial, over, lab_seed, size, args.declare_blur)
+            prints, reg = _registered_batch(d, trial, over, lab_seed, size, args.declare_blur, args.dense_reference)
         else:
             prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"], **reg))
@@ -641,6 +653,10 @@ def main():
                          "that imaged beads would; where the prints do not resolve the scattering the calibration then "
                          "fits through the measurement stage holding it, not the registration's template blur "
                          "(output folder suffix _blur)")
+    ap.add_argument("--dense-reference", action="store_true",
+                    help="--registered: each batch holds a dense reference (a large block at 4 times the exposure, "
+                         "batch.yaml dense_reference), on which the registration measures the fully cured level instead "
+                         "of estimating it from the batch's brightest polymer (output folder suffix _ref)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

@@ -85,10 +85,14 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
     prints included), IoU as registered (ok and empty prints), and IoU with the true
     transform (a perfect registration of the same image, same flat field and threshold)."""
     qc = {r["id"]: r for r in read_tsv(reg_dir / "qc.tsv")}
-    offset = float(read_yaml(reg_dir / "batch.yaml").get("camera_offset_adu", 0) or 0)
+    meta = read_yaml(reg_dir / "batch.yaml")
+    offset = float(meta.get("camera_offset_adu", 0) or 0)
+    refs = meta.get("dense_reference") or []
     truth = {r["id"]: r for r in read_tsv(truth_dir / "transforms.tsv")}
     out = []
     for mid, t in truth.items():
+        if mid in refs:  # a dense reference: the registration measures it, it registers no print of it
+            continue
         q = qc[mid]
         tp = read_print(truth_dir / "prints" / f"{mid}.png")
         row = dict(id=mid, status=q["status"], reason=q.get("reason", ""), truth_solid=float(tp.mean()),

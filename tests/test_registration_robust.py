@@ -293,6 +293,47 @@ def test_a_declared_dense_level_measures_prints_that_never_cure_fully(tmp_path, 
         register_batch(tmp_path / "batch", tmp_path / "reg3", progress=False)
 
 
+def test_a_dense_reference_print_measures_the_level_that_prints_never_reach(tmp_path, trial_dir):
+    """The same prints that never cure fully, with a dense reference in the batch (a large
+    block printed at 4 times the exposure, batch.yaml dense_reference): the registration
+    measures the fully cured level on it, within 5 % of the lab's own (1 / background), and
+    the prints are measured where the density reaches the print level. The reference is no
+    print (not in qc.tsv); registration.yaml records it. A reference the batch does not
+    hold, one whose image shows no block, and a batch that gives dense_level as well are
+    errors that name the file."""
+    from unscatter.lab import load_config
+
+    over = {"printer": {"cure": {"threshold": 0.62, "gel_dose": 0.35}}}
+    masks = tmp_path / "masks"
+    shutil.copytree(trial_dir, masks)
+    write_png(masks / "dense_ref.png", patterns.dense_reference_mask())
+    write_png(masks / "nothing.png", np.full((512, 512), 40, np.uint8))  # below the gel dose: no block
+    print_batch(masks, tmp_path / "batch", overrides=over, seed=3, progress=False, exposures={"dense_ref": 4.0})
+    yml = tmp_path / "batch" / "batch.yaml"
+    text = yml.read_text()
+    yml.write_text(text + "dense_reference: [dense_ref, nothing]\n")
+    with pytest.raises(InputError, match="dense reference 'nothing'") as err:
+        register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    assert "nothing" in str(err.value.path)
+    (tmp_path / "batch" / "masks" / "nothing.png").unlink()
+    next((tmp_path / "batch" / "images").glob("nothing.*")).unlink()
+    yml.write_text(text + "dense_reference: [dense_ref, gone]\n")
+    with pytest.raises(InputError, match="'gone', which the batch does not hold"):
+        register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    yml.write_text(text + "dense_reference: dense_ref\ndense_level: 3.0\n")
+    with pytest.raises(InputError, match="not both"):
+        register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    yml.write_text(text + "dense_reference: dense_ref\n")
+    rows = register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    level = 1.0 / float(load_config(overrides=over)["microscope"]["background"])
+    meta = read_yaml(tmp_path / "reg" / "registration.yaml")
+    assert meta["dense_reference"]["prints"] == ["dense_ref"] and meta["measurement"]["dense_level"] == "reference"
+    assert meta["dense_level"] == pytest.approx(level, rel=0.05)
+    assert "dense_ref" not in {r["id"] for r in rows} and len(rows) == 9
+    bias = _edge_bias(tmp_path / "reg", tmp_path / "batch.truth")
+    assert len(bias) >= 8 and abs(np.median(bias)) < 0.4
+
+
 # ------------------------------------------------------------- pose spread, batch range
 
 

@@ -286,6 +286,14 @@ def test_batch_meta_defaults_and_optional_fields(batch):
     assert m.camera_offset_adu == 0 and m.notes == "" and m.image_rotation_deg == (-10, 10) and m.z_step_um == 50
     _batch_yaml(batch, "image_rotation_deg: [-3, 12]\n")
     assert read_batch_meta(batch).image_rotation_deg == (-3, 12)
+    _batch_yaml(batch, "dense_reference: ref_1\n")
+    assert read_batch_meta(batch).dense_reference == ("ref_1",)
+    _batch_yaml(batch, "dense_reference: [ref_1, ref_2]\n")
+    assert read_batch_meta(batch).as_dict()["dense_reference"] == ["ref_1", "ref_2"]
+    for bad in ("[ref_1, ref_1]", "3", "[]"):
+        _batch_yaml(batch, f"dense_reference: {bad}\n")
+        with pytest.raises(InputError, match="dense_reference"):
+            read_batch_meta(batch)
 
 
 def test_lab_config_with_a_bad_batch_field(masks, tmp_path):

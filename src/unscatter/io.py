@@ -311,6 +311,16 @@ def _tolerance(path, key, v) -> float:
     return t
 
 
+def _ids(path, key, v) -> tuple[str, ...]:
+    """One print id or a list of them (distinct, non-empty text)."""
+    items = v if isinstance(v, list) else [v]
+    if not items or not all(isinstance(x, str) and x.strip() for x in items):
+        raise InputError(path, f"field {key!r} must be a print id or a list of print ids, found {v!r}")
+    if len(set(items)) != len(items):
+        raise InputError(path, f"field {key!r} names a print twice: {v!r}")
+    return tuple(items)
+
+
 def _factors(path, key, v) -> dict:
     if not isinstance(v, dict):
         raise InputError(path, f"field {key!r} must map names to exposure factors, found {v!r}")
@@ -329,6 +339,7 @@ BATCH_FIELDS = {
     "image_pixel_size_tolerance": (False, _tolerance),  # how far (relative) any stated camera pixel size may be off
     "image_rotation_deg": (False, _rotation),
     "dense_level": (False, _number),  # fully cured polymer's fluorescence over the background (registration)
+    "dense_reference": (False, _ids),  # prints of a large block exposed well past cure: the registration measures it
     "microscope_blur_um": (False, _number),  # the microscope's blur at the sample: its PSF's Gaussian sigma (calibration)
     "layer_um": (False, _number),
     "z_step_um": (False, _number),
@@ -352,6 +363,7 @@ class BatchMeta:
     image_pixel_size_tolerance: float | None = None
     image_rotation_deg: tuple[float, float] | None = None
     dense_level: float | None = None
+    dense_reference: tuple[str, ...] | None = None
     microscope_blur_um: float | None = None
     layer_um: float | None = None
     z_step_um: float | None = None
@@ -388,6 +400,8 @@ def check_batch_meta(data: dict, path) -> BatchMeta:
         raise InputError(path, f"pixel_size_um = {vals['pixel_size_um']} is not a plausible DMD pixel size (0.1 to 100 um)")
     if not vals["material"].strip():
         raise InputError(path, "field 'material' must be a non-empty string")
+    if "dense_level" in vals and "dense_reference" in vals:
+        raise InputError(path, "give dense_level (a measured number) or dense_reference (prints to measure it on), not both")
     return BatchMeta(**vals)
 
 

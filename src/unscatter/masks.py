@@ -47,6 +47,17 @@ def fiducial_marks(size: int = 512) -> tuple[np.ndarray, np.ndarray]:
     return marks, clear
 
 
+def dense_reference_mask(size: int = 512) -> np.ndarray:
+    """A dense reference (batch.yaml ``dense_reference``): a centred square of 5/8 of the
+    field at full grey, to be printed 3 to 5 times as long as the trial prints so that its
+    polymer cures through, and imaged as they are; the registration measures the fully
+    cured polymer's level on its interior (``imaging.flatfield.reference_level``)."""
+    m = np.zeros((size, size), np.uint8)
+    a = (size - round(size * 5 / 8)) // 2
+    m[a : size - a, a : size - a] = 255
+    return m
+
+
 def with_fiducials(mask: np.ndarray) -> np.ndarray:
     """``mask`` with the registration marks (``fiducial_marks``) and their cleared band."""
     marks, clear = fiducial_marks(mask.shape[0])

