@@ -113,6 +113,29 @@ def test_print_job_exposures(tmp_path):
         print_batch(tmp_path / "m", tmp_path / "batch2", exposures=read_job(tmp_path / "other.tsv"), progress=False)
 
 
+def test_the_lab_prints_a_dense_reference_when_asked(tmp_path):
+    """Lab config dense_reference: x adds one print of a large block at x times the exposure,
+    named in batch.yaml; its polymer cures through (density at saturation in its interior).
+    A bad factor, and a mask that already has the reference's id, are errors."""
+    from unscatter.io import InputError, read_batch_meta, read_mask, read_tsv, write_png
+    from unscatter.lab import print_batch
+    from unscatter.masks import dense_reference_mask
+
+    write_png(tmp_path / "m" / "a.png", dense_reference_mask(128) // 2)
+    print_batch(tmp_path / "m", tmp_path / "batch", overrides={"dense_reference": 4}, seed=1, progress=False)
+    assert read_batch_meta(tmp_path / "batch").dense_reference == ("dense_reference",)
+    assert np.array_equal(read_mask(tmp_path / "batch" / "masks" / "dense_reference.png"), dense_reference_mask(128))
+    assert {r["id"]: float(r["exposure"]) for r in read_tsv(tmp_path / "batch" / "job.tsv")} == {"a": 1.0, "dense_reference": 4.0}
+    rho = np.load(tmp_path / "batch.truth" / "density" / "dense_reference.npy")
+    assert np.median(rho[48:80, 48:80]) > 0.99
+    for bad in (True, 0.8, "long"):
+        with pytest.raises(InputError, match="dense_reference must be an exposure factor"):
+            print_batch(tmp_path / "m", tmp_path / "b2", overrides={"dense_reference": bad}, progress=False)
+    write_png(tmp_path / "m" / "dense_reference.png", dense_reference_mask(128))
+    with pytest.raises(InputError, match="a mask is named 'dense_reference'"):
+        print_batch(tmp_path / "m", tmp_path / "b3", overrides={"dense_reference": 4}, progress=False)
+
+
 # ------------------------------------------------------------------ randomised labs
 
 

@@ -10,8 +10,12 @@ import numpy as np
 from tqdm import tqdm
 
 from ..io import InputError, check_batch_meta, list_pngs, output_dir, read_mask, write_png, write_tiff16, write_tsv, write_yaml
+from ..masks import dense_reference_mask
 from .microscope import digitize, image_print, stored
 from .printer import Printer
+
+
+REFERENCE_ID = "dense_reference"  # the id of the dense reference print a lab config asks for (``dense_reference``)
 
 
 def mask_rng(seed: int, mask_id: str) -> np.random.Generator:
@@ -99,6 +103,11 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
     masks = list_pngs(mask_dir)
     if not masks:
         raise InputError(mask_dir, "no .png masks to print")
+    ref = cfg.get("dense_reference")
+    if ref is not None and (isinstance(ref, bool) or not isinstance(ref, (int, float)) or not 1.0 < ref <= 5.0):
+        raise InputError(source, f"dense_reference must be an exposure factor above 1 and at most 5 (or null), found {ref!r}")
+    if ref is not None and REFERENCE_ID in masks:
+        raise InputError(mask_dir, f"a mask is named {REFERENCE_ID!r}, the id of the dense reference the lab config asks for")
     exposures = {k: float(v) for k, v in (exposures or {}).items()}
     unknown = sorted(set(exposures) - set(masks))
     if unknown:
@@ -106,9 +115,14 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
     bad = [k for k, v in exposures.items() if not 0.2 <= v <= 5.0]
     if bad:
         raise InputError(mask_dir, f"exposure factors outside 0.2..5 for {', '.join(bad[:5])}")
-    meta = batch_yaml(cfg, exposures, source)
     first = read_mask(next(iter(masks.values())))
     size = first.shape[0]
+    if ref is not None:  # a large block cured through: the registration measures the dense level on it
+        masks = {**masks, REFERENCE_ID: None}
+        exposures[REFERENCE_ID] = float(ref)
+    meta = batch_yaml(cfg, exposures, source)
+    if ref is not None:
+        meta["dense_reference"] = [REFERENCE_ID]
     printers: dict = {}
 
     def printer_for(mid: str) -> Printer:
@@ -128,7 +142,7 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
             sub.mkdir()
         rows = []
         for mid, path in tqdm(masks.items(), desc="virtual lab: printing", disable=not progress, unit="print"):
-            mask = read_mask(path)
+            mask = read_mask(path) if path is not None else dense_reference_mask(size)
             if mask.shape != (size, size):
                 raise InputError(path, f"mask is {mask.shape}, the batch's masks are {size}x{size}")
             rng = mask_rng(cfg["seed"], mid)
@@ -137,7 +151,10 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
             truth = printer.crop(rho) >= level
             img, pose, M = image_print(rho, printer.pad, size, mic, rng)
             cam_um = stated_pixel_um(mic, float(meta["pixel_size_um"]), pose["scale"], cfg["seed"], mid)
-            shutil.copyfile(path, batch / "masks" / f"{mid}.png")
+            if path is not None:
+                shutil.copyfile(path, batch / "masks" / f"{mid}.png")
+            else:
+                write_png(batch / "masks" / f"{mid}.png", mask)
             if mic.get("format", "tif16") == "png8":  # an 8-bit camera or export
                 write_png(batch / "images" / f"{mid}.png", stored(img, mic))
             else:
