@@ -34,9 +34,7 @@ they were the cure (the paper's way); "auto" (the default) does so too, but wher
 fitted sigma is no larger than the measurement's own blur (``_resolution``: the prints
 do not resolve the scattering) it fits them again through the stage, the microscope's
 blur held as batch.yaml states it (``microscope_blur_um``) or else as the registration's
-print template measured it, and where the registrations thresholded at a measured dense
-level (``_dense_measured``) it fits through the stage as "registration" does;
-"registration" always fits through the stage, holding a
+print template measured it; "registration" always fits through the stage, holding a
 stated blur, else fitting it by a profile after the GA (``_profile_blur``). The fitted
 parameters are Eq. 1's alone; params.yaml records the stage under ``measurement``.
 
@@ -209,13 +207,6 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         return m, sim, obj, p, Space(p)
 
     meas = _measurement(s["measurement"], data)
-    chosen = None
-    if meas is None and s["measurement"] == "auto" and _dense_measured(data):
-        # the fully cured level measured (a dense reference print, or a declared dense_level): the registration's
-        # threshold sits at the print level, and the stage models what the microscope's blur does there
-        meas = _measurement("registration", data)
-        chosen = "the registrations' dense level is measured (batch.yaml dense_reference or dense_level)"
-        log.info("measurement 'auto': %s: fitted through the measurement stage", chosen)
     m, sim, obj, params, space = through(meas)
     run_warnings: list[str] = []
     if B < 8:
@@ -345,7 +336,6 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
             meas.as_dict(), profile=[{k: round(v, 6) for k, v in r.items()} for r in profile],
             **({"switched": dict(switched, note="measurement 'auto': the prints did not resolve the scattering")}
                if switched else {}),
-            **({"chosen": f"measurement 'auto': {chosen}"} if chosen else {}),
             note="fitted through this measurement stage (unscatter.measurement): the measured print is the density, "
                  "blurred, at the level; the parameters are the printer's, without it")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -509,17 +499,6 @@ def _recorded(data: PrintSet) -> list:
         rec = (read_yaml(f) or {}).get("measurement") if f.is_file() else None
         out.append(rec if isinstance(rec, dict) else None)
     return out
-
-
-def _dense_measured(data: PrintSet) -> bool:
-    """Whether every prints folder's registration thresholded at a measured dense level
-    (registration.yaml ``measurement.dense_level``: ``reference`` or ``declared``), not
-    at the batch's estimate. Measured with ``bench_calibration_bias.py`` (seed 52026, 6
-    labs, a dense reference in each batch): through the stage held-out IoU 0.011 below the
-    lab's floor (median), fitted as the cure 0.040, the stage better in 6 of 6 labs; with
-    the estimated level the stage lost as often as it won."""
-    recs = _recorded(data)
-    return bool(recs) and all(r is not None and r.get("dense_level") in ("reference", "declared") for r in recs)
 
 
 def _measurement(setting, data: PrintSet) -> Measurement | None:

@@ -322,8 +322,7 @@ CALIBRATION = Stage(
                         "auto - as none, but where the fitted sigma is no larger than the blur the registration's "
                         "template measured (the prints do not resolve the scattering) fitted again through the "
                         "measurement, the microscope's blur held: as batch.yaml states it (microscope_blur_um), else as "
-                        "the template measured it; and as registration where the registrations' dense level is measured "
-                        "(batch.yaml dense_reference or dense_level); registration - the density blurred "
+                        "the template measured it; registration - the density blurred "
                         "by the microscope (the stated blur held, else fitted) and thresholded at the registration's "
                         "level, as registration.yaml records it (prints without one: none); none - the measured prints "
                         "taken for the cure itself (the paper's). See the README, 'The measurement in the calibration'.",
