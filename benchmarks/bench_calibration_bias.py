@@ -105,7 +105,8 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     for mid, m in trial.items():
         if not a.reuse:
             write_png(d / "masks" / f"{mid}.png", m)
-    if a.dense_reference and not a.reuse:
+    if a.dense_reference and not a.reuse:  # by hand, not the lab's dense_reference option: the id dense_ref (and
+        # its noise) of the runs the README reports
         write_png(d / "masks" / "dense_ref.png", dense_reference_mask(a.size))
     t0 = time.perf_counter()
     reuse = a.reuse and (d / "reg" / "qc.tsv").is_file()

@@ -327,7 +327,7 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
         full["microscope"] = dict(full["microscope"], declare_blur=True)
     for mid, m in trial.items():
         write_png(d / "masks" / f"{mid}.png", m)
-    if dense_reference:
+    if dense_reference:  # by hand, not the lab's dense_reference option: the id dense_ref of the runs the README reports
         from unscatter.io import read_yaml
         from unscatter.masks import dense_reference_mask
 

@@ -84,7 +84,7 @@ def test_fitting_through_the_measurement_recovers_sigma(blurred_lab, tmp_path):
         through = calibrate(root, tmp_path / "through", seed=0, measurement="registration", **FIT)
         _record(root, 0.45)  # a print template's estimate can be this far off
         off = calibrate(root, tmp_path / "off", seed=0, measurement="registration", **FIT)
-        _record(root, 0.6, dense_level="reference")
+        _record(root, 0.6, dense_level_from="reference")
         default = calibrate(root, tmp_path / "default", seed=0, **FIT)  # the default ("auto") ignores a record that
         # states no blur, for prints that resolve the scattering, whatever set the registration's dense level
     finally:

@@ -73,9 +73,10 @@ def test_bad_stack_batches_are_clear_errors(batch, tmp_path):
         register_stacks(b, tmp_path / "o2", progress=False)
     yml = b / "batch.yaml"
     text = yml.read_text()
-    yml.write_text(text + "dense_level: 3.0\n")  # a widefield image's level: not a stack's
-    with pytest.raises(InputError, match="dense_level is for single-layer"):
-        register_stacks(b, tmp_path / "o4", progress=False)
+    for extra, key in (("dense_level: 3.0\n", "dense_level"), ("dense_reference: [x]\n", "dense_reference")):
+        yml.write_text(text + extra)  # a widefield image's level: not a stack's
+        with pytest.raises(InputError, match=f"{key} is for single-layer"):
+            register_stacks(b, tmp_path / "o4", progress=False)
     yml.write_text(text)
     (b / "images" / f"{first}.tif").unlink()
     r = CliRunner().invoke(main, ["register3d", str(b), str(tmp_path / "o3")])

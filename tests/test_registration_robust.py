@@ -318,20 +318,37 @@ def test_a_dense_reference_print_measures_the_level_that_prints_never_reach(tmp_
     (tmp_path / "batch" / "masks" / "nothing.png").unlink()
     next((tmp_path / "batch" / "images").glob("nothing.*")).unlink()
     yml.write_text(text + "dense_reference: [dense_ref, gone]\n")
-    with pytest.raises(InputError, match="'gone', which the batch does not hold"):
+    with pytest.raises(InputError, match="'gone', which the batch does not hold") as err:
         register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    assert err.value.path == yml
     yml.write_text(text + "dense_reference: dense_ref\ndense_level: 3.0\n")
-    with pytest.raises(InputError, match="not both"):
+    with pytest.raises(InputError, match="not both") as err:
         register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
+    assert err.value.path == yml
     yml.write_text(text + "dense_reference: dense_ref\n")
     rows = register_batch(tmp_path / "batch", tmp_path / "reg", progress=False)
     level = 1.0 / float(load_config(overrides=over)["microscope"]["background"])
     meta = read_yaml(tmp_path / "reg" / "registration.yaml")
-    assert meta["dense_reference"]["prints"] == ["dense_ref"] and meta["measurement"]["dense_level"] == "reference"
+    assert meta["dense_reference"]["prints"] == ["dense_ref"] and meta["measurement"]["dense_level_from"] == "reference"
     assert meta["dense_level"] == pytest.approx(level, rel=0.05)
     assert "dense_ref" not in {r["id"] for r in rows} and len(rows) == 9
     bias = _edge_bias(tmp_path / "reg", tmp_path / "batch.truth")
     assert len(bias) >= 8 and abs(np.median(bias)) < 0.4
+
+
+def test_a_measured_reference_level_is_in_the_images_units_whatever_the_flat_field():
+    """A declared dense_level is in units of the background, which a batch corrected by
+    subtraction with noisy backgrounds cannot use (an error); a level measured on the
+    batch's own dense reference is in the images' units either way."""
+    from pathlib import Path
+
+    from unscatter.imaging.batch import Settings, declared_level
+    from unscatter.imaging.flatfield import Corrected
+
+    noisy = {"a": Corrected("a", np.zeros((4, 4), np.float32), 1.5, 10.0, "uint8", 0.1)}
+    with pytest.raises(InputError, match="remove dense_level"):
+        declared_level(3.0, 2.0, noisy, "subtract", Settings(), Path("batch.yaml"))
+    assert declared_level(3.0, 2.0, noisy, "subtract", Settings(), Path("batch.yaml"), "dense_reference") == (3.0, 1.5)
 
 
 # ------------------------------------------------------------- pose spread, batch range

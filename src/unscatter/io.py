@@ -315,7 +315,7 @@ def _ids(path, key, v) -> tuple[str, ...]:
     """One print id or a list of them (distinct, non-empty text)."""
     items = v if isinstance(v, list) else [v]
     if not items or not all(isinstance(x, str) and x.strip() for x in items):
-        raise InputError(path, f"field {key!r} must be a print id or a list of print ids, found {v!r}")
+        raise InputError(path, f"field {key!r} must be a print id or a list of print ids, found {v!r} (put ids in quotes)")
     if len(set(items)) != len(items):
         raise InputError(path, f"field {key!r} names a print twice: {v!r}")
     return tuple(items)

@@ -18,7 +18,7 @@ rule virtual_lab:
         batch=re.escape(config["lab"]["batch"]),
     params:
         seed=config["lab"]["seed"],
-        code=code_version("lab", "io"),
+        code=code_version("lab", "io", "masks"),
     threads: 1
     resources:
         mem_mb=2000,
@@ -43,7 +43,7 @@ rule virtual_lab_benchmark:
         f"{RESULTS}/benchmarks/virtual_lab/{LAB_BENCHMARK_BATCH}.tsv"
     params:
         seed=config["lab"]["seed"] + 1,
-        code=code_version("lab", "io"),
+        code=code_version("lab", "io", "masks"),
     threads: 1
     resources:
         mem_mb=2000,

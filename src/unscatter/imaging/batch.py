@@ -433,12 +433,13 @@ def stated_scatter(stated: dict, placed: dict, pose_sds: dict, design_px: int, m
                 held_within=held, prints=int(len(d)))
 
 
-def reference_levels(refs: list, images: dict, offset: float, ff_mode: str, s: Settings) -> dict:
+def reference_levels(refs: list, images: dict, offset: float, ff_mode: str, s: Settings, source: Path) -> dict:
     """The dense level measured on the batch's dense reference prints (batch.yaml
     ``dense_reference``; ``flatfield.reference_level``), corrected as the batch's images
     are: the median of their levels, each one's level and unevenness (registration.yaml
     ``dense_reference``). A reference image without a block to measure is an error that
-    names it; references that disagree, or an uneven block, a warning."""
+    names it; references that disagree, or an uneven block, a warning that names the
+    batch's ``source`` (its batch.yaml)."""
     got = {}
     for mid in refs:
         k = correct_image(mid, images[mid], offset, s, ff_mode)
@@ -446,17 +447,15 @@ def reference_levels(refs: list, images: dict, offset: float, ff_mode: str, s: S
             got[mid] = reference_level(k)
         except ValueError as exc:
             raise InputError(images[mid], f"dense reference {mid!r} (batch.yaml dense_reference): {exc}") from None
-    levels = np.array([v[0] for v in got.values()])
+    levels = np.array([v[0] for v in got.values()])  # positive: the median of a block above half its bright end
     level = float(np.median(levels))
-    if levels.min() <= 0:
-        raise InputError(images[refs[int(np.argmin(levels))]], "a dense reference must be brighter than its background")
     if levels.max() / levels.min() - 1 > s.reference_spread:
-        log.warning("the dense references' levels differ by %.0f %% (%s): their median %.3g is the batch's dense level",
-                    100 * (levels.max() / levels.min() - 1), ", ".join(f"{m} {v[0]:.3g}" for m, v in got.items()), level)
+        log.warning("%s: the dense references' levels differ by %.0f %% (%s): their median %.3g is the batch's dense level",
+                    source, 100 * (levels.max() / levels.min() - 1), ", ".join(f"{m} {v[0]:.3g}" for m, v in got.items()), level)
     for mid, (v, uneven, _) in got.items():
         if uneven > s.reference_spread:
-            log.warning("dense reference %s: its block's polymer varies by %.0f %% (robust sd over median): an uneven stain or "
-                        "lamp field, or a block not cured through", mid, 100 * uneven)
+            log.warning("%s: dense reference %s: its block's polymer varies by %.0f %% (robust sd over median): an uneven "
+                        "stain or lamp field, or a block not cured through", source, mid, 100 * uneven)
     return dict(prints=list(refs), level=level, levels={m: round(v[0], 4) for m, v in got.items()},
                 unevenness={m: round(v[1], 4) for m, v in got.items()}, interior_px={m: v[2] for m, v in got.items()})
 
@@ -471,14 +470,18 @@ def declared_level(declared: float, observed: float, corr: dict, ff_mode: str, s
     falls back to subtraction is in those units too as long as no image's noise exceeds its
     background (``correct_image``), and otherwise cannot use the declared level: an error,
     not a threshold in the wrong units. Polymer brighter than the declared level by more
-    than ``declared_margin`` suggests a wrong value: a warning, with both numbers."""
-    if ff_mode != "divide" and any(k.noise >= 1.0 for k in corr.values()):  # then in units of their noise
+    than ``declared_margin`` suggests a wrong value: a warning, with both numbers.
+
+    ``key`` "dense_reference": the level measured on the batch's dense reference prints
+    (``reference_levels``), corrected as the batch's images are and so in their units
+    whatever the flat field's mode."""
+    if key == "dense_level" and ff_mode != "divide" and any(k.noise >= 1.0 for k in corr.values()):  # then in units of their noise
         raise InputError(source, f"{key} {declared:g} is in units of the background, but the background of some images is "
                                  f"below their noise, so the registration cannot put it in their units; remove {key}")
     if np.isfinite(observed) and observed > s.declared_margin * declared:
-        log.warning("%s: the batch's brightest polymer reaches %.3g, %.0f %% above the %s level %.3g: is it for this stain "
-                    "and microscope%s?", source, observed, 100 * (observed / declared - 1), key, declared,
-                    ", and was the reference cured through" if key == "dense_reference" else "")
+        log.warning("%s: the batch's brightest polymer reaches %.3g, %.0f %% above the %s level %.3g: %s", source, observed,
+                    100 * (observed / declared - 1), key, declared,
+                    "was the reference cured through?" if key == "dense_reference" else "is it for this stain and microscope?")
     log.info("dense level %.3g from %s in %s (the batch's brightest polymer: %.3g)", declared, key, source, observed)
     return float(declared), s.level * float(declared)
 
@@ -626,7 +629,7 @@ def measurement_record(template: dict, rows: list[dict], level: float, meta=None
     the dose at which the template's cure reaches half of saturation, and the level.
     Where batch.yaml states the microscope's blur (``microscope_blur_um``, ``meta``), it
     is recorded in design px as ``declared_blur_px``: a calibration through the
-    measurement holds it instead of fitting one. ``dense_level`` says where the level's
+    measurement holds it instead of fitting one. ``dense_level_from`` says where the level's
     reference, the fully cured polymer, came from: ``reference`` (measured on the batch's
     dense reference prints), ``declared`` (batch.yaml ``dense_level``) or ``estimated``
     (the batch's brightest polymer, low where no print cures through)."""
@@ -639,8 +642,8 @@ def measurement_record(template: dict, rows: list[dict], level: float, meta=None
     if meta is not None and meta.microscope_blur_um is not None:
         out["declared_blur_px"] = round(float(meta.microscope_blur_um) / float(meta.pixel_size_um), 4)
     if meta is not None:
-        out["dense_level"] = ("reference" if meta.dense_reference else "declared" if meta.dense_level is not None
-                              else "estimated")
+        out["dense_level_from"] = ("reference" if meta.dense_reference else "declared" if meta.dense_level is not None
+                                   else "estimated")
     return out
 
 
@@ -766,7 +769,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dense, thr = dense_level([k for mid, k in corr.items() if mid not in odd], s)
     if batch.meta.dense_level is not None:
         dense, thr = declared_level(batch.meta.dense_level, dense, corr, ff_mode, s, batch_dir / "batch.yaml")
-    reference = reference_levels(refs, batch.images, offset, ff_mode, s) if refs else None
+    reference = reference_levels(refs, batch.images, offset, ff_mode, s, batch_dir / "batch.yaml") if refs else None
     if reference:
         dense, thr = declared_level(reference["level"], dense, corr, ff_mode, s, batch_dir / "batch.yaml", "dense_reference")
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)

@@ -77,6 +77,8 @@ def batch_yaml(cfg: dict, exposures: dict, source) -> dict:
     out["notes"] = f"virtual lab, seed {cfg['seed']}"
     if any(v != 1.0 for v in exposures.values()):
         out["notes"] += "; some masks printed at other exposures: see job.tsv"
+    if cfg.get("dense_reference") is not None:  # the dense reference print the lab adds (run_batch)
+        out["dense_reference"] = [REFERENCE_ID]
     check_batch_meta(out, source)
     return out
 
@@ -121,8 +123,6 @@ def run_batch(mask_dir: Path, out_batch: Path, truth_dir: Path, cfg: dict, progr
         masks = {**masks, REFERENCE_ID: None}
         exposures[REFERENCE_ID] = float(ref)
     meta = batch_yaml(cfg, exposures, source)
-    if ref is not None:
-        meta["dense_reference"] = [REFERENCE_ID]
     printers: dict = {}
 
     def printer_for(mid: str) -> Printer:
