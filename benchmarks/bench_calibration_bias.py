@@ -83,10 +83,10 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.calibration import calibrate
     from unscatter.imaging import register_batch
     from unscatter.io import read_print, read_tsv, read_yaml, write_png, write_yaml
-    from unscatter.lab import Printer, load_config, print_batch, random_lab
+    from unscatter.lab import Printer, load_config, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.lab.run import psf_sigma_um
-    from unscatter.masks import dense_reference_mask, test_pattern_masks, trial_masks
+    from unscatter.masks import test_pattern_masks, trial_masks
     from unscatter.metrics import area_bias_px, iou
     from unscatter.model import default_params, simulate
 
@@ -105,17 +105,12 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     for mid, m in trial.items():
         if not a.reuse:
             write_png(d / "masks" / f"{mid}.png", m)
-    if a.dense_reference and not a.reuse:  # by hand, not the lab's dense_reference option: the id dense_ref (and
-        # its noise) of the runs the README reports
-        write_png(d / "masks" / "dense_ref.png", dense_reference_mask(a.size))
     t0 = time.perf_counter()
     reuse = a.reuse and (d / "reg" / "qc.tsv").is_file()
     if not reuse:
-        print_batch(d / "masks", d / "batch", overrides=over, seed=_substream(seed, i, 5), progress=False,
-                    exposures={"dense_ref": 4.0} if a.dense_reference else None)
-        if a.dense_reference:  # a large block cured through, which the registration measures
-            meta = read_yaml(d / "batch" / "batch.yaml")
-            write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_reference": ["dense_ref"]})
+        from bench_diagnosis import print_lab_batch  # with --dense-reference, a large block cured through
+
+        print_lab_batch(d / "masks", d / "batch", over, _substream(seed, i, 5), a.size, a.dense_reference)
         if a.declare_dense:  # the lab's fully cured polymer over its background (the microscope's units)
             meta = read_yaml(d / "batch" / "batch.yaml")
             write_yaml(d / "batch" / "batch.yaml", {**meta, "dense_level": round(1.0 / float(cfg["microscope"]["background"]), 4)})

@@ -306,6 +306,25 @@ def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
     return out
 
 
+REFERENCE = "dense_ref"  # the benchmarks' dense reference print, at 4 times the exposure (the id of the runs the
+# README reports: the lab's own dense_reference option names it otherwise, and a print's noise follows its id)
+
+
+def print_lab_batch(masks_dir: Path, batch_dir: Path, overrides: dict, seed: int, size: int, dense_reference: bool) -> None:
+    """``print_batch`` of ``masks_dir``; with ``dense_reference`` one more print, a dense
+    reference (``masks.dense_reference_mask`` at 4 times the exposure), named in batch.yaml."""
+    from unscatter.io import read_yaml
+    from unscatter.lab import print_batch
+    from unscatter.masks import dense_reference_mask
+
+    if dense_reference:
+        write_png(masks_dir / f"{REFERENCE}.png", dense_reference_mask(size))
+    print_batch(masks_dir, batch_dir, overrides=overrides, seed=seed, progress=False,
+                exposures={REFERENCE: 4.0} if dense_reference else None)
+    if dense_reference:
+        write_yaml(batch_dir / "batch.yaml", {**read_yaml(batch_dir / "batch.yaml"), "dense_reference": [REFERENCE]})
+
+
 def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int,
                       declare_blur: bool = False, dense_reference: bool = False) -> tuple[Path, dict]:
     """The trial masks printed and imaged by the whole random lab (``random_lab``'s
@@ -318,7 +337,7 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
     on which the registration measures the fully cured level."""
     import bench_registration
     from unscatter.imaging import register_batch
-    from unscatter.lab import print_batch, random_lab
+    from unscatter.lab import random_lab
     from unscatter.lab.random import describe_lab
 
     full = dict(random_lab(np.random.default_rng(lab_seed)), printer=over["printer"])
@@ -327,15 +346,7 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
         full["microscope"] = dict(full["microscope"], declare_blur=True)
     for mid, m in trial.items():
         write_png(d / "masks" / f"{mid}.png", m)
-    if dense_reference:  # by hand, not the lab's dense_reference option: the id dense_ref of the runs the README reports
-        from unscatter.io import read_yaml
-        from unscatter.masks import dense_reference_mask
-
-        write_png(d / "masks" / "dense_ref.png", dense_reference_mask(size))
-    print_batch(d / "masks", d / "batch", overrides=full, seed=lab_seed, progress=False,
-                exposures={"dense_ref": 4.0} if dense_reference else None)
-    if dense_reference:
-        write_yaml(d / "batch" / "batch.yaml", {**read_yaml(d / "batch" / "batch.yaml"), "dense_reference": ["dense_ref"]})
+    print_lab_batch(d / "masks", d / "batch", full, lab_seed, size, dense_reference)
     t0 = time.perf_counter()
     qc = register_batch(d / "batch", d / "prints", skip_failed=True, progress=False)
     t_reg = time.perf_counter() - t0
