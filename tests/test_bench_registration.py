@@ -154,13 +154,17 @@ def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp
     size spread (``place_dose_sd``; 0.036 in this lab), three prints that were 0.06, 0.2
     and 0.6 px off fail, a dots print and two whose scale rests on where a few
     near-threshold lines lie: the largest error is 0.14 %, the median of the fewer ok
-    prints 0.054 %."""
+    prints 0.054 %. Since an uneven stain is divided out of the images the poses are fitted
+    to (2026-11-28: 11 prints here, and the template fitted again on them), 13 prints are
+    ok (14 before), their largest error 0.15 %, their median 0.070 %, the largest pose
+    error 1.38 px (1.16 before): this lab is one of the few the division costs (over 16
+    random labs of two seeds: failed 202 -> 165, silently wrong 6 -> 4)."""
     bench = _bench()
     _, rows = bench.run_lab(4, 147307914, 32, tmp_path)
     sc = read_yaml(tmp_path / "lab_04" / "reg" / "registration.yaml")["stated_scatter"]
     assert sc["misfit_px"] > 0.4 and sc["held_within"] is not None, sc
     ok = [r for r in rows if r["status"] == "ok"]
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
-    assert len(ok) >= 14
+    assert len(ok) >= 13
     errors = [abs(np.log(r["scale"] / r["true_scale"])) for r in ok]
-    assert max(errors) <= 0.0025 and np.median(errors) <= 0.0006, errors
+    assert max(errors) <= 0.0025 and np.median(errors) <= 0.0008, errors

@@ -104,3 +104,36 @@ def test_affine_mode_registers_as_well(lab_batch, tmp_path):
         assert r["id"] == "faint" or transform_rms_px(_truth_matrix(r), _truth_matrix(truth[r["id"]]), 512) > 1.0, r
     rms, ious = _evaluate(tmp_path / "reg", truth_dir, may_fail=tuple(r["id"] for r in failed))
     assert rms.mean() <= 0.6 and ious.mean() >= 0.97
+
+
+def test_stain_field_measures_an_uneven_stain_from_the_interiors_and_not_from_edges_or_background():
+    """A print whose polymer is brighter in one part (a smooth stain, 15 % across it) under
+    a fit with one gain: the field from its interiors matches the stain there within 3 %,
+    and its spread says so; the same print evenly stained gives a spread under 1 %, and a
+    print whose edges are 2 px off the prediction (a pose off) is not read as a stain."""
+    import cv2
+    from unscatter.imaging.flatfield import stain_field, stain_ratio
+
+    rng = np.random.default_rng(5)
+    H = W = 400
+    m = np.zeros((H, W), np.float32)
+    for r0 in range(40, 360, 80):  # blocks 50 px wide, 30 px apart
+        for c0 in range(40, 360, 80):
+            m[r0:r0 + 50, c0:c0 + 50] = 1
+    T = cv2.GaussianBlur(m, (0, 0), 2.0)
+    yy, xx = np.mgrid[0:H, 0:W] / H
+    stain = (1 + 0.2 * np.sin(2 * np.pi * (xx + 0.5 * yy))).astype(np.float32)
+    offset, gain = 0.1, 3.0
+    noise = rng.normal(0, 0.05, (H, W)).astype(np.float32)
+    img = offset + gain * stain * T + noise
+    f, sd = stain_field(*stain_ratio(img, offset + gain * T, offset, gain), 16.0)
+    inner = cv2.erode((T >= 0.85).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    rel = stain / np.median(stain[inner])
+    assert np.max(np.abs(f[inner] - rel[inner])) < 0.03
+    assert 0.08 < sd < 0.2
+    assert 0.7 < f.min() and f.max() < 1.4  # no blow-up where the interiors are few or to one side (the corners)
+    _, sd_even = stain_field(*stain_ratio(offset + gain * T + noise, offset + gain * T, offset, gain), 16.0)
+    assert sd_even < 0.01
+    shifted = offset + gain * np.roll(T, 2, axis=1) + noise  # the edges 2 px off, the brightness even
+    _, sd_off = stain_field(*stain_ratio(shifted, offset + gain * T, offset, gain), 16.0)
+    assert sd_off < 0.02

@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..io import check_image_content, read_image_raw
+from .template import gaussian
 
 
 def _poly_basis(shape, degree: int, step: int = 1):
@@ -149,3 +150,90 @@ def reference_level(k: Corrected, erode: float = 0.25, min_radius_px: float = 24
         raise ValueError("its block has no interior away from its edges to measure")
     level = float(np.median(vals))
     return level, float(1.4826 * np.median(np.abs(vals - level)) / max(level, 1e-12)), int(vals.size)
+
+
+def stain_ratio(img: np.ndarray, predicted: np.ndarray, offset: float, level: float, top: float = 0.85,
+                erode_px: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """The ratio of a print's polymer to its fit's prediction over its cured interiors,
+    relative to its median there, and those interiors (0 or 1), where a stain shows.
+
+    ``predicted`` is the image that the print's fit predicts (gain T + offset, one gain
+    for the whole print; ``img`` and it on one grid, NaN in ``img`` where it has no
+    pixel) and ``level`` the print's cured level above ``offset`` (``pose.print_level``).
+    The interiors are where the prediction reaches ``top`` of that level, eroded by
+    ``erode_px`` so that an edge a pixel off does not count. Why the interiors: a blurred
+    edge's half-height lies where it lies whatever the polymer's brightness, but a fit
+    with one gain for the whole print puts it where the print's mean brightness would, so
+    a dim part's edges are fitted inside the bright part's; the interiors tell brightness
+    from place."""
+    above = predicted - offset
+    inner = (above >= top * level) & np.isfinite(img)
+    if erode_px > 0:
+        inner = cv2.erode(inner.astype(np.uint8), np.ones((2 * erode_px + 1,) * 2, np.uint8)) > 0
+    ratio = np.zeros(img.shape, np.float32)
+    if inner.sum() < 50 or not level > 0:
+        return ratio, np.zeros(img.shape, np.float32)
+    r = (img[inner] - offset) / np.maximum(above[inner], 1e-6 * level)
+    med = float(np.median(r))
+    if not med > 0:
+        return ratio, np.zeros(img.shape, np.float32)
+    ratio[inner] = r / med
+    return ratio, inner.astype(np.float32)
+
+
+def stain_field(ratio: np.ndarray, inner: np.ndarray, sigma_px: float, support: float = 0.02) -> tuple[np.ndarray, float]:
+    """The polymer's own flat field in one image (uneven staining or photobleaching, which
+    brightens or dims the polymer, not the background, smoothly across a print) from its
+    interiors' ``ratio`` (``stain_ratio``; ``inner`` their weights): spread by normalised
+    convolution of the first order (a plane fitted to the ratio under a Gaussian window of
+    ``sigma_px`` px around each pixel: at an interior's edge, where the window's interiors
+    lie to one side, a plain weighted mean is off by the stain's slope times their
+    distance, 7 % for a stain of 20 % over 360 px at 16 px, and the edges are where the
+    field matters); where fewer than ``support`` of the pixels around are interiors it
+    falls back to the same over 4 times the width, and from that to 1. Returns the field
+    and its robust spread over the interiors (0 where there are none)."""
+    if not inner.any():
+        return np.ones(ratio.shape, np.float32), 0.0
+    f = np.ones(ratio.shape)
+    for sig in (4 * sigma_px, sigma_px):  # a wide field first, which the narrow one falls back to where its interiors are few
+        f = _local_linear(ratio, inner, sig, f, support)
+    f = np.clip(f, 0.25, 4.0).astype(np.float32)
+    v = f[inner > 0]
+    return f, float(1.4826 * np.median(np.abs(v - np.median(v))))
+
+
+def _local_linear(v: np.ndarray, w: np.ndarray, sigma: float, prior: np.ndarray, support: float,
+                  slope_ridge: float = 0.01) -> np.ndarray:
+    """Normalised convolution of the first order (Knutsson and Westin 1993): at each pixel,
+    the value at that pixel of the plane a + b x + c y fitted by least squares to ``v``
+    with weights ``w`` times a Gaussian window of ``sigma`` px. The plane's level is pulled
+    toward ``prior`` with the weight of ``support`` of a full window, its slopes toward 0
+    with ``slope_ridge`` of one (x, y in window sigmas), so that a window with few or
+    one-sided weights neither divides by nothing nor extrapolates a slope. OpenCV's
+    Gaussian filter over the nine moments (``template.gaussian``: on a reduced grid where
+    the window is wide; the moments about each pixel are exact for any linear filter, as
+    the pixel's own coordinates are constants under it); float64 for the normal equations."""
+    H, W = v.shape
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    x = (x - (W - 1) / 2) / sigma
+    y = (y - (H - 1) / 2) / sigma
+    w = w.astype(np.float64)
+    wv = w * v
+
+    def g(a):
+        return gaussian(a, sigma, cv2.BORDER_CONSTANT)
+
+    S0, Sx, Sy = g(w), g(w * x), g(w * y)
+    Sxx, Sxy, Syy = g(w * x * x), g(w * x * y), g(w * y * y)
+    R0, Rx, Ry = g(wv), g(wv * x), g(wv * y)
+    # moments about the pixel itself: the plane's level there is its value
+    mxx, mxy, myy = Sxx - 2 * x * Sx + x * x * S0, Sxy - x * Sy - y * Sx + x * y * S0, Syy - 2 * y * Sy + y * y * S0
+    mx, my = Sx - x * S0, Sy - y * S0
+    rx, ry = Rx - x * R0, Ry - y * R0
+    # a full window weighs 1 (OpenCV's kernel sums to 1), and its second moments are 1 (x, y in sigmas)
+    a00, b0 = S0 + support, R0 + support * prior
+    a11, a12, a22 = mxx + slope_ridge, mxy, myy + slope_ridge
+    # solve [[a00, mx, my], [mx, a11, a12], [my, a12, a22]] [a, b, c] = [b0, rx, ry] for a (Cramer's rule)
+    det = a00 * (a11 * a22 - a12 * a12) - mx * (mx * a22 - a12 * my) + my * (mx * a12 - a11 * my)
+    num = b0 * (a11 * a22 - a12 * a12) - mx * (rx * a22 - a12 * ry) + my * (rx * a12 - a11 * ry)
+    return num / det
