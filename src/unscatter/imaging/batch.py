@@ -110,6 +110,11 @@ class PoseChoice:
     def converged(self) -> bool:  # the chosen pose's refinement settled (a refit held to a scale: that refit's)
         return self.fit is not None and self.fit.converged
 
+    @property
+    def poses(self) -> list:
+        """The chosen pose and its rival, if any: where choosing it again starts."""
+        return [self.fit.M] + ([self.rival] if self.rival is not None else [])
+
 
 # --------------------------------------------------------------------------- steps
 
@@ -885,6 +890,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 in_image = cv2.warpAffine(fld, f.M.astype(np.float64), (W, H), flags=cv2.INTER_LINEAR,
                                           borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
                 smooth[mid] = (f.offset + (smooth[mid] - f.offset) / in_image).astype(smooth[mid].dtype)
+        del ratios  # two grids a print, not needed past here
         if stains:
             log.info("uneven staining in %d prints (polymer brightness %.1f to %.1f %% across them): their images divided "
                      "by it", len(stains), 100 * min(stains.values()), 100 * max(stains.values()))
@@ -899,8 +905,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             x0 = np.r_[x[:13], PrintTemplate.START[13:17], x[17:]]
             x, _, _, template_prints = fit_batch_template({mid: choices[mid].fit.M for mid in refit}, x0)
             bar.total += len(todo)
-            choices = chosen(todo, x, {mid: [ch.fit.M] + ([ch.rival] if ch.rival is not None else []) + list(starts[mid][0])
-                                       for mid, ch in choices.items() if ch.fit is not None})
+            choices = chosen(todo, x, {mid: ch.poses + list(starts[mid][0]) for mid, ch in choices.items() if ch.fit is not None})
             rechosen = stain_refit = True
     sure = [mid for mid in todo if placed(choices[mid])]
     sure = sure[:: max(1, len(sure) // 12)][:12]
@@ -923,13 +928,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             settled = [mid for mid in todo if placed(choices[mid])]  # no rival close: refined, not chosen again
             again = [mid for mid in choices if mid not in settled]
             choices.update(zip(settled, pmap(lambda mid: refined(mid, x), settled)))
-            choices.update(chosen(again, x, {mid: [ch.fit.M] + ([ch.rival] if ch.rival is not None else [])
-                                             for mid, ch in choices.items() if mid in again}))
+            choices.update(chosen(again, x, {mid: ch.poses for mid, ch in choices.items() if mid in again}))
             rechosen = True
     if stains and not rechosen:  # the prints whose images the stain changed, chosen again from their pose and rival
         bar.total += len(stains)
-        choices.update(chosen(list(stains), x, {mid: [choices[mid].fit.M] + ([choices[mid].rival] if choices[mid].rival
-                                                                              is not None else []) for mid in stains}))
+        choices.update(chosen(list(stains), x, {mid: choices[mid].poses for mid in stains}))
     # 5b. a print with a rival pose (a star one spoke off) is chosen again among the poses
     # that the batch's determined prints make plausible
     grid = design_px + 2 * MARGIN
