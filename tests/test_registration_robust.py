@@ -456,6 +456,35 @@ def test_a_print_that_is_one_feature_has_its_scale_from_its_size_only():
     assert size_spread(T_row, "similarity") < 0.4
 
 
+def test_a_grating_printed_as_one_block_counts_as_merged_and_a_checkerboard_or_a_swollen_dot_does_not():
+    """``merged_features`` on prints cut from known shapes: a grating whose lines are three
+    times as wide as its gaps, printed as one block (1.33 times its exposed area: at the
+    old 1.5 it passed, and a print of it on seed 724740725's lab 6 was ok 2.5 px off in
+    scale), and the same in an image cut at a given level; not the grating resolved, a
+    checkerboard whose squares meet at their corners, or one dot swollen to twice its area
+    (one part of the mask: nothing joined)."""
+    from unscatter.imaging.pose import merged_features
+
+    m = np.zeros((120, 120))
+    for c in range(10, 106, 8):
+        m[10:110, c:c + 6] = 1
+    block = np.zeros_like(m)
+    block[10:110, 10:108] = 1
+    assert merged_features(block, m)
+    assert merged_features(0.8 * block + 0.1, m, level=0.5)
+    assert not merged_features(0.8 * block + 0.1, m, level=0.95)
+    assert not merged_features(m, m)
+    cb = np.zeros_like(m)
+    for i in range(4):
+        for j in range(4):
+            if (i + j) % 2 == 0:
+                cb[10 + 20 * i:30 + 20 * i, 10 + 20 * j:30 + 20 * j] = 1
+    assert not merged_features(cb, cb)
+    yy, xx = np.mgrid[:120, :120]
+    dot = ((yy - 60) ** 2 + (xx - 60) ** 2 < 100).astype(float)
+    assert not merged_features(((yy - 60) ** 2 + (xx - 60) ** 2 < 200).astype(float), dot)
+
+
 def test_a_feature_that_barely_or_does_not_print_fixes_no_scale():
     """A block and a thin line beside it: where the template predicts the line's peak
     well above the level, the two features' places fix the scale; where the line barely

@@ -798,17 +798,26 @@ def dose_sensitivity(T: np.ndarray, dose_response: np.ndarray) -> float:
     return float(np.quantile(np.abs(dose_response[edge]) / g[edge], DOSE_QUANTILE))
 
 
-def merged_features(T: np.ndarray, m: np.ndarray, fill: float = 1.5) -> bool:
-    """Whether the predicted print ``T`` joins parts of the padded mask ``m`` into one feature
-    that is ``fill`` times or more the exposed area within it (a fine grating printed as one
-    block, dots run together): the size of such a feature is set by the scatter between
-    its parts, which the template predicts worse than an edge's erosion."""
-    lab, count = ndimage.label(T >= 0.5 * float(T.max()))
+def merged_features(T: np.ndarray, m: np.ndarray, fill: float = 1.2, level: float | None = None) -> bool:
+    """Whether the predicted print ``T`` joins parts of the padded mask ``m`` (two or more of
+    its 4-connected parts) into one feature that is ``fill`` times or more the exposed area
+    within it (a fine grating printed as one block, dots run together): the size of such a
+    feature is set by the scatter between its parts, which the template predicts worse
+    than an edge's erosion. ``T`` may be an image on the template's grid instead, cut at
+    ``level`` (default: half its maximum). A checkerboard, whose squares touch at their
+    corners, joins its parts at about its exposed area; a grating of lines three times as
+    wide as its gaps, printed as one, at 1.33 times."""
+    lab, count = ndimage.label(T >= (0.5 * float(T.max()) if level is None else level))
     if count == 0:
         return False
     area = np.bincount(lab.ravel(), minlength=count + 1)[1:]
     exposed = np.bincount(lab.ravel(), weights=(m > 0).ravel(), minlength=count + 1)[1:]
-    return bool(np.any(area > fill * np.maximum(exposed, 1.0)))
+    parts, n = ndimage.label(m > 0)
+    # the mask's parts that each feature holds: distinct (feature, part) pairs
+    pairs = np.unique(lab.ravel().astype(np.int64) * (n + 1) + parts.ravel())
+    pairs = pairs[(pairs // (n + 1) > 0) & (pairs % (n + 1) > 0)]
+    held = np.bincount(pairs // (n + 1), minlength=count + 1)[1:]
+    return bool(np.any((area > fill * np.maximum(exposed, 1.0)) & (held >= 2)))
 
 
 TILE_PX = 32  # design px: the tiles over which the pose spread lets template misfit correlate
