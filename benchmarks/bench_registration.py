@@ -268,6 +268,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
              f"scaled to 720x720 by pixel count: median {np.median(per32 / mpx):.1f} s, max {np.max(per32 / mpx):.1f} s)")
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
     L += qc_lines(rows)
+    L += reason_lines(rows)
     L += metadata_lines(labs, rows)
     L += offset_lines(labs, rows)
     L += tail_lines(labs, rows)
@@ -376,6 +377,47 @@ def qc_lines(rows: list[dict]) -> list[str]:
             L.append(f"  ok prints' true pose error / {name}: median {np.median(z):.2f}, p90 {np.quantile(z, 0.9):.2f}, "
                      f"above 3: {int(np.sum(z > 3))} of {int(keep.sum())} (if the spread held the error: a median near 1, "
                      f"few above 3)")
+    return L
+
+
+REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports them
+    ("faint", ("faint",)),
+    ("scale rests on a feature's size", ("pose not determined by the print: its scale",)),
+    ("pose uncertain or free", ("pose not determined by the print: uncertain", "pose not determined by the print: free")),
+    ("ambiguous: the mask's symmetry", ("ambiguous: the mask maps",)),
+    ("ambiguous: a rival pose", ("ambiguous: a pose",)),
+    ("near the threshold", ("near the threshold",)),
+    ("does not match its mask", ("does not match",)),
+    ("did not converge", ("pose refinement did not converge",)),
+    ("scale or rotation off", ("scale ", "rotation ")),
+    ("score, coverage, image", ("registration score", "print extends", "not a print image", "polymer in the image")),
+)
+
+
+def reason_kinds(reason: str) -> set:
+    """The kinds (REASON_KINDS) of a failed print's QC reasons."""
+    parts = reason.split("; ")
+    return {name for name, prefixes in REASON_KINDS if any(p.startswith(prefixes) for p in parts)}
+
+
+def reason_lines(rows: list[dict]) -> list[str]:
+    """The failed prints by the kind of their QC reasons (a print may give several), each
+    split by its true pose error as ``qc_lines`` splits them, and for the faint ones
+    whether the lab printed anything there (truth solid above SILENT_EMPTY_SOLID)."""
+    failed = [r for r in rows if r["status"] == "failed"]
+    L = [f"  failed prints by the kind of their reasons (a print may give several): within {SILENT_POSE_PX} px / "
+         f"further off / no pose"]
+    for name, _ in REASON_KINDS:
+        rr = [r for r in failed if name in reason_kinds(r["reason"])]
+        if not rr:
+            continue
+        err = np.array([r.get("rms_px", np.nan) for r in rr], float)
+        good, off = int(np.sum(err <= SILENT_POSE_PX)), int(np.sum(err > SILENT_POSE_PX))
+        extra = ""
+        if name == "faint":
+            printed = sum(r["truth_solid"] > SILENT_EMPTY_SOLID for r in rr)
+            extra = f"  (the lab printed {printed} of them; the rest cured nothing or under {SILENT_EMPTY_SOLID} of the field)"
+        L.append(f"    {name:34s} {len(rr):4d}: {good:3d} / {off:3d} / {len(rr) - good - off:3d}{extra}")
     return L
 
 

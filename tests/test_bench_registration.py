@@ -2,6 +2,7 @@
 config is the same lab, bit for bit, apart from what ``--set`` changes."""
 
 import importlib.util
+import re
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,29 @@ def test_the_summary_splits_labs_by_how_they_state_their_camera_offset():
     assert "declared, tif16 (1 labs) 0 failed, 0 silently wrong of 1" in line
     assert "declared, png8 (1 labs) 1 failed, 0 silently wrong of 1" in line
     assert "undeclared (1 labs) 1 failed, 1 silently wrong of 2" in line
+
+
+def test_the_summary_counts_failed_prints_by_the_kind_of_their_reasons():
+    """A print with two reasons counts under both; a long reason's own '; ' (the note on a
+    stated pixel size) adds no kind; faint prints say how many of them the lab printed."""
+    bench = _bench()
+    rows = [dict(status="failed", rms_px=0.4, truth_solid=0.1,
+                 reason="pose not determined by the print: its scale rests on the size of a feature; no camera pixel size "
+                        "is stated; ambiguous: the mask maps onto itself rotated by 17.4 deg"),
+            dict(status="failed", rms_px=3.0, truth_solid=0.1, reason="ambiguous: the mask maps onto itself rotated by 12 deg"),
+            dict(status="failed", truth_solid=0.0, reason="faint: its brightest polymer reaches 80 %"),
+            dict(status="failed", truth_solid=0.002, reason="faint: its brightest polymer reaches 99 %"),
+            dict(status="ok", rms_px=0.2, truth_solid=0.1, reason="")]
+    lines = bench.reason_lines(rows)
+
+    def counts(kind):  # (prints, within 1.5 px, further off, no pose)
+        return tuple(int(v) for v in re.search(r"(\d+):\s+(\d+) /\s+(\d+) /\s+(\d+)", next(x for x in lines if kind in x)).groups())
+
+    assert counts("mask's symmetry") == (2, 1, 1, 0)
+    assert counts("feature's size") == (1, 1, 0, 0)
+    faint = next(x for x in lines if x.strip().startswith("faint"))
+    assert "2:   0 /   0 /   2" in faint and "printed 1 of them" in faint
+    assert not any("pose uncertain" in x for x in lines)
 
 
 def test_set_changes_a_dotted_key_with_a_yaml_value_and_names_what_is_wrong():
