@@ -390,7 +390,7 @@ REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports th
     ("does not match its mask", ("does not match",)),
     ("did not converge", ("pose refinement did not converge",)),
     ("scale or rotation off", ("scale ", "rotation ")),
-    ("score, coverage, image", ("registration score", "print extends", "not a print image", "polymer in the image")),
+    ("score, coverage, not a print image", ("registration score", "print extends", "not a print image", "polymer in the image")),
 )
 
 

@@ -1099,12 +1099,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         where the held fit's spreads are the smaller. It counts in the pose's spread, so it
         lets a print pass only when it is tight enough (about 0.15 % for a print of 512 px)."""
         ch, T = choices[mid], spreads[mid][0]
-        m = full.padded(masks[mid])
-        seen = imaged(mid, ch.fit)
-        # the template may resolve what the print joins (a grating whose gaps scatter filled):
-        # the print itself, smoothed against noise and cut at the template's half level
-        merged = merged_features(T, m) or (seen is not None and merged_features(
-            ndimage.gaussian_filter(seen, 1.0), m, level=0.5 * float(T.max())))
+        padded = full.padded(masks[mid])
+        merged = merged_features(T, padded)
+        if not merged:  # the template may resolve what the print joins (a grating whose gaps scatter filled): the
+            # print itself, smoothed against noise and cut at the template's half level
+            seen = imaged(mid, ch.fit)
+            merged = seen is not None and merged_features(ndimage.gaussian_filter(seen, 1.0), padded,
+                                                          level=0.5 * float(T.max()))
         sd = None if merged else edge_sd
         sized = spreads[mid][1] > s.max_pose_sd
         edges = not merged and sized and len(placed) >= s.size_min_prints
