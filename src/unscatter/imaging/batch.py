@@ -858,6 +858,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def placed(ch) -> bool:  # a pose the template may be fitted at: no rival close, converged (its spread, which a
         return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence  # poor template inflates, aside)
 
+    def uncontested() -> list:  # the prints the template is fitted on again: up to 12 placed ones, spread over the batch
+        ids_ = [mid for mid in todo if placed(choices[mid])]
+        return ids_[:: max(1, len(ids_) // 12)][:12]
+
+    def hot_spot_again(x):  # the template's numbers with its lamp hot spot back at its start, to be searched for again
+        return np.r_[x[:13], PrintTemplate.START[13:17], x[17:]]
+
     full = PrintTemplate(design_px, MARGIN)  # the full-resolution template, steps 5a to 6
     choices = chosen(todo, x)
     # 5a, first: uneven staining. A print whose polymer is brighter in one part than another
@@ -899,19 +906,16 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # takes the place of the lamp's hot spot and of the core's anisotropy) from where it is, the hot spot searched for
         # again, and every print chosen again with it. From the template's start instead: a lab's rectangles print
         # (tests/test_bench_registration.py, seed 147307914's lab 4) went 1.16 -> 1.60 px off, ok
-        refit = [mid for mid in todo if placed(choices[mid])]
-        refit = refit[:: max(1, len(refit) // 12)][:12]
+        refit = uncontested()
         if len(refit) >= s.template_min_prints:
-            x0 = np.r_[x[:13], PrintTemplate.START[13:17], x[17:]]
-            x, _, _, template_prints = fit_batch_template({mid: choices[mid].fit.M for mid in refit}, x0)
+            x, _, _, template_prints = fit_batch_template({mid: choices[mid].fit.M for mid in refit}, hot_spot_again(x))
             bar.total += len(todo)
             choices = chosen(todo, x, {mid: ch.poses + list(starts[mid][0]) for mid, ch in choices.items() if ch.fit is not None})
             rechosen = stain_refit = True
-    sure = [mid for mid in todo if placed(choices[mid])]
-    sure = sure[:: max(1, len(sure) // 12)][:12]
+    sure = uncontested()
     if len(sure) >= s.template_min_prints:
-        x0 = np.r_[x[:13], PrintTemplate.START[13:17], x[17:]]  # the hot spot searched for again
-        x2, fit2, pairs2, used2 = fit_batch_template({mid: choices[mid].fit.M for mid in sure}, x0, 300, hot_spot=False)
+        x2, fit2, pairs2, used2 = fit_batch_template({mid: choices[mid].fit.M for mid in sure}, hot_spot_again(x), 300,
+                                                     hot_spot=False)
         before = mean_ncc(quarter, pairs2, x)
         log.info("print template at the poses of %d prints: mean NCC %.4f, the first template's %.4f", len(sure), fit2, before)
         if fit2 - before > s.template_refit_gain:
