@@ -269,6 +269,7 @@ def summarize(seed: int, labs: list[dict], rows: list[dict], cmd: str) -> str:
     L.append(f"  mean IoU over the {len(scored)} ok or empty prints whose truth is not empty; failed prints have no print")
     L += qc_lines(rows)
     L += reason_lines(rows)
+    L += magnification_lines(labs, rows)
     L += metadata_lines(labs, rows)
     L += offset_lines(labs, rows)
     L += tail_lines(labs, rows)
@@ -315,6 +316,24 @@ def _by_kind(title: str, kind_of, kinds: tuple, labs: list[dict], rows: list[dic
             parts.append(f"{k} ({sum(v == k for v in kind.values())} labs) {sum(r['status'] == 'failed' for r in rr)} failed, "
                          f"{sum(r['silently_wrong'] for r in rr)} silently wrong of {len(rr)}")
     return [f"  by {title}: " + "; ".join(parts)]
+
+
+def magnification_kind(over: dict) -> str:
+    """How a drawn lab's magnification varies between images (``lab.random``): one
+    objective (only refocusing changes it, 0.4 % at most), a zoom set by hand per image
+    (a narrow range) or the whole range."""
+    from unscatter.lab.random import RANGES
+
+    lo, hi = over["microscope"]["scale"]
+    if hi / lo < 1.005:
+        return "one objective"
+    return "whole range" if (lo, hi) == tuple(RANGES["scale"]) else "zoom per image"
+
+
+def magnification_lines(labs: list[dict], rows: list[dict]) -> list[str]:
+    """Failures and silent errors by how the lab's magnification varies by image."""
+    return _by_kind("the lab's magnification", magnification_kind, ("one objective", "zoom per image", "whole range"),
+                    labs, rows)
 
 
 def metadata_lines(labs: list[dict], rows: list[dict]) -> list[str]:

@@ -18,7 +18,7 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
+from .pose import (STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
@@ -89,6 +89,9 @@ class Settings:
     template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
     stain_sigma_px: float = 16.0  # design px: the scale over which a print's uneven staining is measured (stain_field) ...
     stain_min_sd: float = 0.06  # ... and its spread across the print's interiors that divides it out (inf: never)
+    stain_batch_sd: float = 0.02  # ... down to this in a batch where template_min_prints prints reach stain_min_sd
+    stain_slope_sd: float = 0.1  # ... and in such a batch each print's brightness slopes across the field are fitted
+    # with its pose, this their prior sd (``pose.BRIGHTNESS``; 0: none)
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -890,8 +893,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         def stain_of(mid):
             return (mid, *stain_field(*ratios[mid], s.stain_sigma_px))
 
-        for mid, fld, sd in pool.map(stain_of, list(ratios)):
-            if sd >= s.stain_min_sd:
+        fields = list(pool.map(stain_of, list(ratios)))
+        # a stain is the lab's (its staining, its bleaching): where enough of the batch's
+        # prints show one, every print's field is divided out down to stain_batch_sd
+        least = (s.stain_batch_sd if sum(sd >= s.stain_min_sd for _, _, sd in fields) >= s.template_min_prints
+                 else s.stain_min_sd)
+        for mid, fld, sd in fields:
+            if sd >= least:
                 stains[mid] = sd
                 f, (H, W) = choices[mid].fit, smooth[mid].shape
                 in_image = cv2.warpAffine(fld, f.M.astype(np.float64), (W, H), flags=cv2.INTER_LINEAR,
@@ -907,6 +915,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # again, and every print chosen again with it. From the template's start instead: a lab's rectangles print
         # (tests/test_bench_registration.py, seed 147307914's lab 4) went 1.16 -> 1.60 px off, ok
         refit = uncontested()
+        x = np.r_[x[:STAIN_SLOPE], s.stain_slope_sd, x[STAIN_SLOPE + 1:]]
         if len(refit) >= s.template_min_prints:
             x, _, _, template_prints = fit_batch_template({mid: choices[mid].fit.M for mid in refit}, hot_spot_again(x))
             bar.total += len(todo)

@@ -230,8 +230,8 @@ class Fit:
     joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
-        names = [n for n, _, _ in NUISANCE]
-        if name in names:
+        names = [n for n, _, _ in NUISANCE] + list(BRIGHTNESS)
+        if name in names[: len(self.q)]:
             return float(self.q[names.index(name)])
         raise AttributeError(name)
 
@@ -257,16 +257,36 @@ def _warp(img: np.ndarray, Ms: np.ndarray, shape) -> np.ndarray:
 NUISANCE = (("dose", 1.0, 0.3), ("blur", None, 1.5), ("grad_x", 0.0, 0.15), ("grad_y", 0.0, 0.15), ("edge", 0.0, 0.5),
             ("edge_c2", 0.0, 0.3), ("edge_s2", 0.0, 0.3))
 _BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad_y": (-0.5, 0.5), "edge": (-6.0, 6.0),
-           "edge_c2": (-4.0, 4.0), "edge_s2": (-4.0, 4.0)}
+           "edge_c2": (-4.0, 4.0), "edge_s2": (-4.0, 4.0), "bright_x": (-0.5, 0.5), "bright_y": (-0.5, 0.5)}
+
+
+# In a batch that stains unevenly (its template's ``stain_slope`` above 0), each print also
+# has its polymer's brightness slopes across the field: the image is gain (1 + bright_x X +
+# bright_y Y) T + offset, their prior sd the batch's stain_slope. A stain brightens one
+# side of a print; a fit with one gain puts the dim side's edges inside the bright side's,
+# and a print without solid interiors (a fine grating, a star's spokes) shows no field that
+# the batch could divide out first (``flatfield.stain_field``).
+BRIGHTNESS = ("bright_x", "bright_y")
+STAIN_SLOPE = 19  # the template number that holds the stain's prior sd (``PrintTemplate.NAMES``)
+
+
+def stain_slope(x) -> float:
+    """The prior sd of a print's brightness slopes in a batch of template numbers ``x``
+    (0: the batch does not stain, and its prints have none)."""
+    return float(x[STAIN_SLOPE]) if len(x) > STAIN_SLOPE else 0.0
 
 
 def _prior(x, override: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Prior means and standard deviations of the nuisance numbers; ``override``: name ->
-    (mean, sd) in their place (the batch's edge offsets for a print that is one feature)."""
+    """Prior means and standard deviations of the nuisance numbers (and the brightness
+    slopes where the batch stains); ``override``: name -> (mean, sd) in their place (the
+    batch's edge offsets for a print that is one feature)."""
     batch = {"blur": max(float(x[10]), 0.3)}
     override = override or {}
-    mean = np.array([override[n][0] if n in override else batch[n] if m is None else m for n, m, _ in NUISANCE])
-    return mean, np.array([override[n][1] if n in override else sd for n, _, sd in NUISANCE])
+    mean = [override[n][0] if n in override else batch[n] if m is None else m for n, m, _ in NUISANCE]
+    sd = [override[n][1] if n in override else sd for n, _, sd in NUISANCE]
+    if stain_slope(x) > 0:
+        mean, sd = mean + [0.0, 0.0], sd + [stain_slope(x)] * 2
+    return np.array(mean), np.array(sd)
 
 
 def print_template(tmpl, B: np.ndarray, x, q, derivatives: bool = True) -> tuple[np.ndarray, list]:
@@ -274,13 +294,19 @@ def print_template(tmpl, B: np.ndarray, x, q, derivatives: bool = True) -> tuple
     (``derivatives=False``: the template alone, and the derivatives that come free with
     it, those along the edge offsets; None for the four that cost an image each)."""
     dose, blur, gx, gy, *edge = (float(v) for v in q)
+    edge, bright = edge[:3], edge[3:]
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
     if derivatives:
         T, (dT, dTx, dTy), dTb = tmpl.cure_jacobian(B, x, dose * field, (field, dose * tmpl.X, dose * tmpl.Y), blur, 0.1 * blur)
     else:
         T, dT, dTb, dTx, dTy = tmpl.cure(B, x, dose * field, blur=blur), None, None, None, None
     T, dTe = edge_shifted(T, edge, tmpl.f)
-    return T, [dT, dTb, dTx, dTy, *dTe]
+    d = [dT, dTb, dTx, dTy, *dTe]
+    if bright:  # the polymer's brightness slopes (BRIGHTNESS): the image's, after the cure and its edges
+        shade = 1.0 + bright[0] * tmpl.X + bright[1] * tmpl.Y
+        d = [None if v is None else v * shade for v in d] + [T * tmpl.X, T * tmpl.Y]
+        T = T * shade
+    return T, d
 
 
 def log_scale(M: np.ndarray) -> float:
@@ -341,10 +367,12 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
         M, gain, offset, q = fit_or_M.M, fit_or_M.gain, fit_or_M.offset, fit_or_M.q.copy()
+        q = np.r_[q, q0[len(q):]][: len(q0)]  # brightness slopes from none where the batch has since found a stain
     else:
         M, gain, offset, q = np.asarray(fit_or_M, float), None, 0.0, q0.copy()
-    lo = np.array([_BOUNDS[n][0] for n, _, _ in NUISANCE])
-    hi = np.array([_BOUNDS[n][1] for n, _, _ in NUISANCE])
+    names = [n for n, _, _ in NUISANCE] + list(BRIGHTNESS)
+    lo = np.array([_BOUNDS[n][0] for n in names[: len(q0)]])
+    hi = np.array([_BOUNDS[n][1] for n in names[: len(q0)]])
     f = tmpl.f
     S = _grid_to_full(f)
     S_inv = np.linalg.inv(S)

@@ -88,8 +88,11 @@ class PrintTemplate:
     """The print template on the padded design grid, optionally subsampled by ``factor``."""
 
     NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur", "haze", "haze_sigma",
-             "hot", "hot_x", "hot_y", "hot_width", "aniso_c", "aniso_s")
-    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35, 0.0, 0.0)
+             "hot", "hot_x", "hot_y", "hot_width", "aniso_c", "aniso_s", "stain_slope")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35, 0.0, 0.0, 0.0)
+    # stain_slope: not a number of the cure, but of the batch's images: where the batch
+    # stains unevenly, the prior sd of each print's own brightness slopes across the field
+    # (``pose.print_template``), 0 where it does not
     # the numbers Powell fits (``fit_template``), and the scales it works on (a unit step is a
     # sensible first move for each); the hot spot's numbers are fitted by ``fit_hot_spot``
     FREE = (*range(13), 17, 18)
