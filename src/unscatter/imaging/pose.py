@@ -290,9 +290,10 @@ def _prior(x, override: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def print_template(tmpl, B: np.ndarray, x, q, derivatives: bool = True) -> tuple[np.ndarray, list]:
-    """The print's template for nuisance numbers q (order of NUISANCE) and its derivatives
-    (``derivatives=False``: the template alone, and the derivatives that come free with
-    it, those along the edge offsets; None for the four that cost an image each)."""
+    """The print's template for nuisance numbers q (order of NUISANCE, then the brightness
+    slopes where q holds them) and its derivatives (``derivatives=False``: the template
+    alone, and the derivatives that come free with it, those along the edge offsets and
+    the slopes; None for the four that cost an image each)."""
     dose, blur, gx, gy, *edge = (float(v) for v in q)
     edge, bright = edge[:3], edge[3:]
     field = 1.0 + gx * tmpl.X + gy * tmpl.Y
