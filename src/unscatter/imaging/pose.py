@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .template import reduction
+from .template import PrintTemplate, reduction
 
 
 def similarity(theta_deg: float, scale: float, src_c, dst_c) -> np.ndarray:
@@ -230,9 +230,8 @@ class Fit:
     joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
-        names = [n for n, _, _ in NUISANCE] + list(BRIGHTNESS)
-        if name in names[: len(self.q)]:
-            return float(self.q[names.index(name)])
+        if name in Q_NAMES[: len(self.q)]:
+            return float(self.q[Q_NAMES.index(name)])
         raise AttributeError(name)
 
 
@@ -267,7 +266,8 @@ _BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad
 # and a print without solid interiors (a fine grating, a star's spokes) shows no field that
 # the batch could divide out first (``flatfield.stain_field``).
 BRIGHTNESS = ("bright_x", "bright_y")
-STAIN_SLOPE = 19  # the template number that holds the stain's prior sd (``PrintTemplate.NAMES``)
+Q_NAMES = tuple(n for n, _, _ in NUISANCE) + BRIGHTNESS  # a Fit's q, in order (the slopes only where it has them)
+STAIN_SLOPE = PrintTemplate.NAMES.index("stain_slope")  # the template number that holds the stain's prior sd
 
 
 def stain_slope(x) -> float:
@@ -371,9 +371,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         q = np.r_[q, q0[len(q):]][: len(q0)]  # brightness slopes from none where the batch has since found a stain
     else:
         M, gain, offset, q = np.asarray(fit_or_M, float), None, 0.0, q0.copy()
-    names = [n for n, _, _ in NUISANCE] + list(BRIGHTNESS)
-    lo = np.array([_BOUNDS[n][0] for n in names[: len(q0)]])
-    hi = np.array([_BOUNDS[n][1] for n in names[: len(q0)]])
+    lo = np.array([_BOUNDS[n][0] for n in Q_NAMES[: len(q0)]])
+    hi = np.array([_BOUNDS[n][1] for n in Q_NAMES[: len(q0)]])
     f = tmpl.f
     S = _grid_to_full(f)
     S_inv = np.linalg.inv(S)
