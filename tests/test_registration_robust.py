@@ -814,6 +814,30 @@ def test_a_star_under_anisotropic_scatter_is_never_chosen_one_spoke_off():
             assert rows[k]["status"] == "failed" and "maps onto itself rotated by" in rows[k]["reason"], rows[k]
 
 
+def test_a_fine_stars_symmetry_is_found_at_half_resolution():
+    """The symmetry check of a chosen pose (``choose_pose``) turns the mask, blurred by
+    2 px, at 1 deg steps. At quarter resolution a fine star's spokes merge, and the
+    correlation dips too little between no turn and a spoke's (seed 1269754155's lab 7:
+    a 36-spoke star, its period 10 deg, found no symmetry and was `ok` 20 deg and 77 px
+    off); at half resolution the turns of one and two periods are found."""
+    import cv2
+
+    from unscatter.imaging.batch import MARGIN, SYMMETRY_FACTOR, Settings
+    from unscatter.imaging.pose import self_similar_moves
+
+    s = Settings()
+    star = np.pad(patterns.siemens_star(np.random.default_rng(11), spokes=36).astype(np.float32) / 255, MARGIN)
+    m = cv2.GaussianBlur(star, (0, 0), 2.0)
+
+    def turns(factor):
+        moves = self_similar_moves(m, rotation_span=40.0, min_corr=s.symmetric_corr, shifts=False,
+                                   dip=s.symmetric_dip, factor=factor)
+        return sorted(round(float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))) for R in moves)
+
+    found = turns(SYMMETRY_FACTOR)
+    assert {-10, 10} <= set(found) and all(abs(t) % 10 in (0, 1, 9) for t in found), found
+
+
 ANISOTROPIC_LAB = {"microscope": {"blur_px": [3.0, 3.0], "rotation_deg": 10.0},
                    "printer": {"kernel": {"sigma_um": 24.0, "heavy_tail": {"fraction": 0.04, "length_um": 80.0},
                                           "anisotropy": {"ratio": 1.7, "angle_deg": 50.0}},

@@ -135,6 +135,10 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
         return starts, False
 
 
+SYMMETRY_FACTOR = 2  # choose_pose: the mask's turns onto itself are sought at half resolution (at a quarter, a fine
+# star's spokes merge: a 36-spoke star showed no symmetry and was `ok` two spokes, 77 px, off)
+
+
 def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple,
                 rotation: tuple | None = None) -> PoseChoice:
     """Refine every start, add the moves under which the print maps onto itself, and keep
@@ -240,7 +244,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     if any(abs(S[0, 1]) > 1e-6 for S in moves):
         m = cv2.GaussianBlur(full.padded(mask).astype(np.float32), (0, 0), 2.0)
         symmetries = self_similar_moves(m, rotation_span=max(10.0, rotation[1] - rotation[0]), min_corr=s.symmetric_corr,
-                                        shifts=False, dip=s.symmetric_dip)
+                                        shifts=False, dip=s.symmetric_dip, factor=SYMMETRY_FACTOR)
     for R in symmetries:
         alt = (h3(best[0].M) @ R)[:2]
         if in_range(alt) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:

@@ -913,7 +913,7 @@ def _pose_sd(H, norm, npose, J, w, r, sigma, shape, tile, mode, corners, max_lag
 
 
 def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float = 30.0, min_corr: float = 0.5,
-                       count: int = 4, shifts: bool = True, dip: float = 0.0) -> list[np.ndarray]:
+                       count: int = 4, shifts: bool = True, dip: float = 0.0, factor: int = 4) -> list[np.ndarray]:
     """Moves S (3x3, grid -> grid) under which the predicted print T nearly maps onto itself.
 
     Shifts: local maxima of the normalised auto-correlation of T, high-passed (periods up
@@ -924,7 +924,8 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     least ``min_corr`` are kept, the strongest ``count`` of each kind; ``shifts=False``:
     rotations only; a rotation only when the correlation falls by ``dip`` or more between
     no turn and it (a star's spokes over its gaps half-way; a block turned a little
-    correlates well at every angle on the way).
+    correlates well at every angle on the way). The rotations are sought at 1 /
+    ``factor`` of the resolution (a fine star's spokes merge at a quarter).
     """
     n = T.shape[0]
     moves = []
@@ -944,8 +945,8 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
                        if np.hypot(x - max_shift, y - max_shift) >= 2.5), reverse=True)
         for v, dx, dy in cand[:count]:
             moves.append(np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1.0]]))
-    # rotations, at quarter resolution (a spoke is wide near a star's rim)
-    q = 4
+    # rotations, at 1 / ``factor`` of the resolution (quarter: a spoke is wide near a star's rim)
+    q = factor
     Tq = cv2.resize(T, None, fx=1 / q, fy=1 / q, interpolation=cv2.INTER_AREA)
     nq = Tq.shape[0]
     Nq = cv2.getOptimalDFTSize(2 * nq)
