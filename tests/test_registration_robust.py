@@ -829,12 +829,9 @@ def test_a_fine_stars_symmetry_is_found_at_half_resolution():
     star = np.pad(patterns.siemens_star(np.random.default_rng(11), spokes=36).astype(np.float32) / 255, MARGIN)
     m = cv2.GaussianBlur(star, (0, 0), 2.0)
 
-    def turns(factor):
-        moves = self_similar_moves(m, rotation_span=40.0, min_corr=s.symmetric_corr, shifts=False,
-                                   dip=s.symmetric_dip, factor=factor)
-        return sorted(round(float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))) for R in moves)
-
-    found = turns(SYMMETRY_FACTOR)
+    moves = self_similar_moves(m, rotation_span=40.0, min_corr=s.symmetric_corr, shifts=False, dip=s.symmetric_dip,
+                               factor=SYMMETRY_FACTOR)
+    found = sorted(round(float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))) for R in moves)
     assert {-10, 10} <= set(found) and all(abs(t) % 10 in (0, 1, 9) for t in found), found
 
 
