@@ -1000,7 +1000,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             log.info("%s: chosen again within the batch's poses (rotation %.1f..%.1f deg, scale %.3f..%.3f): evidence %.1f -> %.1f",
                      mid, rlo, rhi, slo, shi, choices[mid].evidence, ch.evidence)
             choices[mid] = ch
-    p = dict(zip(PrintTemplate.NAMES, (float(v) for v in np.r_[x, PrintTemplate.START[len(x):]])))  # every number named
+    p = dict(zip(PrintTemplate.NAMES, (float(v) for v in x)))  # every number: fit_template keeps them all
 
     # 5c. how far a print's pose rests on the size of its features, and how well this
     # batch's template predicts sizes: the edge offsets fitted on the prints whose features'

@@ -278,7 +278,8 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool)
     if not anisotropy or not np.any(x[17:19] != 0):
         return x, fit
-    round_ = np.r_[x[:17], 0.0, 0.0, x[19:]]  # the stain's slope kept: dropped, a stained batch's prints lost their slopes
+    round_ = x.copy()
+    round_[17:19] = 0.0  # the core's two numbers; every other kept (the stain's slope among them)
     some, rest = pairs[::2], pairs[1::2]
     if len(rest) < 3:
         return round_, mean_ncc(tmpl, pairs, round_)
