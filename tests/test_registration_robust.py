@@ -384,6 +384,29 @@ def test_a_print_that_fits_its_template_is_determined():
     assert fit.pose_sd < 0.1 and np.abs(fit.M[:, 2]).max() < 0.1, (fit.pose_sd, fit.M)
 
 
+def test_a_start_that_stays_where_no_pose_counts_stops():
+    """``refine``'s ``outside``: a start 40 px off, at poses that the caller does not count,
+    stops after OUTSIDE_STEPS steps, not converged; a start where poses count ends where it
+    ends without the test, to the last digit."""
+    from unscatter.imaging.pose import OUTSIDE_STEPS, refine
+
+    mask, img, tmpl, x = _two_block_print(0)
+    B = tmpl.exposure(tmpl.padded(mask), x)
+    far = np.hstack([np.eye(2), [[40.0], [0.0]]])
+
+    def beyond_20_px(M, gain):
+        return abs(M[0, 2]) > 20 or gain <= 0
+
+    walked = refine(img, far, tmpl, B, x, iters=30, spread=False)
+    stopped = refine(img, far, tmpl, B, x, iters=30, spread=False, outside=beyond_20_px)
+    assert walked.iterations > OUTSIDE_STEPS + 2, walked.iterations
+    assert stopped.iterations == OUTSIDE_STEPS and not stopped.converged, (stopped.iterations, stopped.converged)
+    near = np.hstack([np.eye(2), [[3.0], [-2.0]]])
+    a = refine(img, near, tmpl, B, x, iters=30)
+    b = refine(img, near, tmpl, B, x, iters=30, outside=beyond_20_px)
+    assert a.converged and np.array_equal(a.M, b.M) and a.iterations == b.iterations, (a.M, b.M)
+
+
 def test_a_displaced_block_is_read_as_a_scale_and_an_erosion():
     """The right block printed 6 px right of its mask place. Undamped Gauss-Newton ended
     with the dose at 4.5, the blur at 8 px and the edge offset at its bound of -6 px, a

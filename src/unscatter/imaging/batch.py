@@ -135,6 +135,7 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
         return starts, False
 
 
+FAR_DEG, FAR_SCALE = 5.0, 1.1  # choose_pose: a coarse start this far beyond the searched rotations or scales stops
 SYMMETRY_FACTOR = 2  # choose_pose: the mask's turns onto itself are sought at half resolution (at a quarter, a fine
 # star's spokes merge: a 36-spoke star showed no symmetry and was `ok` two spokes, 77 px, off)
 
@@ -157,7 +158,8 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     n = full.shape[0]
 
     def coarse(M, known=()):  # half resolution: every start and every move; None where it joins a known pose
-        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False, known=[g[0].M for g in known])
+        f = refine(img, M, half, B_half, x, s.mode, iters=30, tol=0.02, spread=False, known=[g[0].M for g in known],
+                   outside=far_outside)
         return None if f.joined else (f, predicted_print(half, B_half, x, f))
 
     def coarse_all(Ms, known=()):
@@ -178,6 +180,12 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
 
     def plausible(f):  # a pose outside the searched ranges is no rival: the prior excludes it
         return in_range(f[0].M) and f[0].gain > 0
+
+    def far_outside(M, gain) -> bool:  # a coarse start walking where no pose counts (refine's ``outside``): its gain
+        # negative (a grating half a pitch off), or turned or scaled well beyond what ``in_range`` counts
+        p = pose_of(M, n, img.shape)
+        return (gain <= 0 or not rotation[0] - FAR_DEG <= p["rotation_deg"] <= rotation[1] + FAR_DEG
+                or not scale[0] / FAR_SCALE <= p["scale"] <= scale[1] * FAR_SCALE)
 
     def dedupe(fits):
         out = []

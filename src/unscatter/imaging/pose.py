@@ -37,11 +37,12 @@ scattered dose, widened by the blur and a band of background), not the whole gri
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy import ndimage
+from scipy import fft as sfft, ndimage
 
 from .template import PrintTemplate, reduction
 
@@ -63,11 +64,19 @@ def _zn(a: np.ndarray) -> np.ndarray:
     return a / (np.linalg.norm(a) + 1e-12)
 
 
-def pose_distance(M1: np.ndarray, M2: np.ndarray, grid_px: int, margin: int, step: int = 16) -> float:
-    """RMS distance (design px) between where two grid->image poses send the design region."""
+@functools.lru_cache(maxsize=16)
+def _field_points(grid_px: int, margin: int, step: int) -> np.ndarray:
+    """The points (2 x n, read-only) over the design region at which ``pose_distance`` compares poses."""
     g = np.arange(margin, grid_px - margin, step, dtype=float)
     X, Y = np.meshgrid(g, g)
     P = np.vstack([X.ravel(), Y.ravel()])
+    P.flags.writeable = False
+    return P
+
+
+def pose_distance(M1: np.ndarray, M2: np.ndarray, grid_px: int, margin: int, step: int = 16) -> float:
+    """RMS distance (design px) between where two grid->image poses send the design region."""
+    P = _field_points(int(grid_px), int(margin), int(step))
     d = (M1[:, :2] - M2[:, :2]) @ P + (M1[:, 2:3] - M2[:, 2:3])
     s = np.sqrt(abs(np.linalg.det(M2[:, :2])))
     return float(np.sqrt(np.mean(np.sum(d * d, axis=0))) / s)
@@ -328,7 +337,8 @@ def _log_scale_row(n: int, mode: str) -> np.ndarray:
 
 def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "similarity", iters: int = 20,
            tol: float = 0.01, spread: bool = True, prior: dict | None = None, scale_prior: tuple | None = None,
-           known: list | None = None, region: np.ndarray | None = None, hold_nuisance: bool = False) -> Fit:
+           known: list | None = None, region: np.ndarray | None = None, hold_nuisance: bool = False,
+           outside=None) -> Fit:
     """Gauss-Newton (maximum a posteriori) on the pose, gain, offset and the print's
     nuisance numbers (``NUISANCE``, with their priors), with Levenberg-Marquardt damping:
     a step that raises the objective (Huber on the residual, the priors, a held scale) by
@@ -364,6 +374,11 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     and offset are fitted, and the pose's spread is conditional on them): for a region
     whose features cannot fix them (solid squares, whose dose, blur and edge offset
     trade against each other and run away).
+
+    ``outside(M, gain)``: True for a pose that the caller will not count (turned or scaled
+    far beyond the searched ranges, a negative gain). A start whose steps stay there for
+    ``OUTSIDE_STEPS`` steps in a row stops (not converged): it would only walk on, to the
+    iteration limit, to a pose that is dropped.
     """
     q0, qs = _prior(x, prior)
     if isinstance(fit_or_M, Fit):
@@ -430,7 +445,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     # last: the objective, sigma, stiffness, state and normal equations of the last state a
     # step was taken from (the steps from it are judged at its sigma and stiffness); lam: the
     # damping, zero (Gauss-Newton) until a step fails
-    last, lam, rejected, stiff, last_move = None, 0.0, 0, 0.0, float("inf")
+    last, lam, rejected, stiff, last_move, away = None, 0.0, 0, 0.0, float("inf"), 0
     for it in range(1, iters + 1):
         Iw = _warp(src, (Ms @ into)[:2], shape)
         valid = np.isfinite(Iw) if counted is None else np.isfinite(Iw) & counted
@@ -501,6 +516,10 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             here = (Ms @ S_inv)[:2]
             if any(pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX for K in known):
                 return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=True)
+        if outside is not None:
+            away = away + 1 if outside((Ms @ S_inv)[:2], gain) else 0
+            if away >= OUTSIDE_STEPS:
+                break
     converged = move < 0.25  # still moving by a quarter pixel a step: not settled (less is in the pose spread)
     sd = float("nan")
     if spread:
@@ -521,6 +540,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
 # (undamped, and the evidence's old clip level), 14 and 266.
 RISE = 0.01
 MAX_REJECTED = 5  # refine: steps from one state that raise the objective, ever more damped, before refinement stops there
+OUTSIDE_STEPS = 3  # refine: steps in a row at poses the caller does not count (``outside``) before a start stops
 JOIN_PX = 1.0  # refine: a start this close (RMS over the field, design px) to a pose already refined stops
 ROI_BAND_PX = 16  # design px of background around the print that refinement keeps
 
@@ -950,13 +970,15 @@ def self_similar_moves(T: np.ndarray, max_shift: int = 64, rotation_span: float 
     Tq = cv2.resize(T, None, fx=1 / q, fy=1 / q, interpolation=cv2.INTER_AREA)
     nq = Tq.shape[0]
     Nq = cv2.getOptimalDFTSize(2 * nq)
-    Fq = np.fft.rfft2(_zn(Tq.astype(np.float64)), s=(Nq, Nq))
+    # single precision (scipy.fft keeps it; numpy's FFT computes in double): 1.7 times
+    # faster, the correlations within 3e-7 of double's and the same peaks (37 benchmark masks)
+    Fq = np.conj(sfft.rfft2(_zn(Tq.astype(np.float64)).astype(np.float32), s=(Nq, Nq)))
     cq = ((nq - 1) / 2,) * 2
     prof = []
     for phi in np.arange(-rotation_span, rotation_span + 1e-9, 1.0):
         R = similarity(phi, 1.0, cq, cq)
         Tr = cv2.warpAffine(Tq, R, (nq, nq), flags=cv2.INTER_LINEAR)
-        cc = np.fft.irfft2(np.fft.rfft2(_zn(Tr.astype(np.float64)), s=(Nq, Nq)) * np.conj(Fq), s=(Nq, Nq))
+        cc = sfft.irfft2(sfft.rfft2(_zn(Tr.astype(np.float64)).astype(np.float32), s=(Nq, Nq)) * Fq, s=(Nq, Nq))
         k = int(np.argmax(cc))
         dy, dx = divmod(k, Nq)
         dy = dy - Nq if dy > Nq // 2 else dy

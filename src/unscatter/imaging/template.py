@@ -242,6 +242,25 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((x * y).sum() / (np.sqrt((x * x).sum() * (y * y).sum()) + 1e-12))
 
 
+class _Centred:
+    """An image's finite pixels less their mean, for ``ncc`` against many templates: the
+    same numbers as ``ncc(img, b)``, without finding and centring them for every ``b``."""
+
+    def __init__(self, img: np.ndarray):
+        self.img, self.ok = img, np.isfinite(img)
+        self.x = img[self.ok] - img[self.ok].mean()
+        self.xx = (self.x * self.x).sum()
+
+    def ncc(self, b: np.ndarray) -> float:
+        if self.ok.sum() < 10:
+            return 0.0
+        y = b[self.ok]
+        if not np.isfinite(y).all():
+            return ncc(self.img, b)
+        y = y - y.mean()
+        return float((self.x * y).sum() / (np.sqrt(self.xx * (y * y).sum()) + 1e-12))
+
+
 ANISO_GAIN = 5e-5  # mean NCC an elliptical core must gain over a round one on prints it was not fitted to (fit_template)
 TRIM = 3.0  # a print whose misfit beyond noise is this many times the median print's, and above MIN_TRIM, is left
 MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
@@ -310,11 +329,13 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
         x[17:19] = tmpl.anisotropy(x)  # held within its bound (beyond it the cost is flat, and Powell wanders)
         return x
 
+    seen = [_Centred(img) for _, img, _ in pairs]  # each image's part that ``ncc`` counts, once
+
     def part(x, idx, scatter):  # the NCCs of prints idx (a task per print cost more in overhead than it saved)
         if scatter:
             for i in idx:
                 B[i] = tmpl.exposure(pairs[i][0], x)
-        return [ncc(pairs[i][1], tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
+        return [seen[i].ncc(tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
 
     def cost(z):
         x = numbers(z)
