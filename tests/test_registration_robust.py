@@ -384,6 +384,24 @@ def test_a_print_that_fits_its_template_is_determined():
     assert fit.pose_sd < 0.1 and np.abs(fit.M[:, 2]).max() < 0.1, (fit.pose_sd, fit.M)
 
 
+def test_the_template_fits_ncc_against_a_centred_image_is_ncc():
+    """``template._Centred`` (each image centred once for the template fit) gives
+    ``ncc``'s numbers to the last bit, with missing pixels in the image, in the template,
+    and in nearly all of the image."""
+    from unscatter.imaging.template import _Centred, ncc
+
+    rng = np.random.default_rng(7)
+    for share in (0.0, 0.3, 0.9995):
+        img = rng.normal(1.0, 0.5, (96, 96)).astype(np.float32)
+        img[rng.random(img.shape) < share] = np.nan
+        seen = _Centred(img)
+        for _ in range(5):
+            b = rng.random((96, 96)).astype(np.float32)
+            assert seen.ncc(b) == ncc(img, b)
+        b[10:20, 10:20] = np.nan
+        assert seen.ncc(b) == ncc(img, b)
+
+
 def test_a_start_that_stays_where_no_pose_counts_stops():
     """``refine``'s ``outside``: a start 40 px off, at poses that the caller does not count,
     stops after OUTSIDE_STEPS steps, not converged; a start where poses count ends where it

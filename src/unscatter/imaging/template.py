@@ -248,11 +248,13 @@ class _Centred:
 
     def __init__(self, img: np.ndarray):
         self.img, self.ok = img, np.isfinite(img)
-        self.x = img[self.ok] - img[self.ok].mean()
-        self.xx = (self.x * self.x).sum()
+        self.few = self.ok.sum() < 10  # ``ncc``'s 0
+        if not self.few:
+            self.x = img[self.ok] - img[self.ok].mean()
+            self.xx = (self.x * self.x).sum()
 
     def ncc(self, b: np.ndarray) -> float:
-        if self.ok.sum() < 10:
+        if self.few:
             return 0.0
         y = b[self.ok]
         if not np.isfinite(y).all():
