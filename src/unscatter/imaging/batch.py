@@ -174,18 +174,17 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         f = refine(img, f[0], full, B_full, x, s.mode, iters=12, tol=0.01)
         return f, predicted_print(full, B_full, x, f)
 
-    def in_range(M):
+    def in_range(M, deg=1.0, factor=1.01):  # within the searched ranges, widened by ``deg`` and ``factor``
         p = pose_of(M, n, img.shape)
-        return rotation[0] - 1 <= p["rotation_deg"] <= rotation[1] + 1 and scale[0] / 1.01 <= p["scale"] <= scale[1] * 1.01
+        return (rotation[0] - deg <= p["rotation_deg"] <= rotation[1] + deg
+                and scale[0] / factor <= p["scale"] <= scale[1] * factor)
 
     def plausible(f):  # a pose outside the searched ranges is no rival: the prior excludes it
         return in_range(f[0].M) and f[0].gain > 0
 
     def far_outside(M, gain) -> bool:  # a coarse start walking where no pose counts (refine's ``outside``): its gain
         # negative (a grating half a pitch off), or turned or scaled well beyond what ``in_range`` counts
-        p = pose_of(M, n, img.shape)
-        return (gain <= 0 or not rotation[0] - FAR_DEG <= p["rotation_deg"] <= rotation[1] + FAR_DEG
-                or not scale[0] / FAR_SCALE <= p["scale"] <= scale[1] * FAR_SCALE)
+        return gain <= 0 or not in_range(M, FAR_DEG, FAR_SCALE)
 
     def dedupe(fits):
         out = []

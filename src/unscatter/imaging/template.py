@@ -238,8 +238,14 @@ def ncc(a: np.ndarray, b: np.ndarray) -> float:
     ok = np.isfinite(a) & np.isfinite(b)
     if ok.sum() < 10:
         return 0.0
-    x, y = a[ok] - a[ok].mean(), b[ok] - b[ok].mean()
-    return float((x * y).sum() / (np.sqrt((x * x).sum() * (y * y).sum()) + 1e-12))
+    x = a[ok] - a[ok].mean()
+    return _ncc_centred(x, (x * x).sum(), b[ok])
+
+
+def _ncc_centred(x: np.ndarray, xx, b: np.ndarray) -> float:
+    """``ncc`` of the centred pixels ``x`` (``xx``: their sum of squares) and the same pixels of ``b``."""
+    y = b - b.mean()
+    return float((x * y).sum() / (np.sqrt(xx * (y * y).sum()) + 1e-12))
 
 
 class _Centred:
@@ -257,10 +263,7 @@ class _Centred:
         if self.few:
             return 0.0
         y = b[self.ok]
-        if not np.isfinite(y).all():
-            return ncc(self.img, b)
-        y = y - y.mean()
-        return float((self.x * y).sum() / (np.sqrt(self.xx * (y * y).sum()) + 1e-12))
+        return _ncc_centred(self.x, self.xx, y) if np.isfinite(y).all() else ncc(self.img, b)
 
 
 ANISO_GAIN = 5e-5  # mean NCC an elliptical core must gain over a round one on prints it was not fitted to (fit_template)
