@@ -12,6 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy import ndimage
+from scipy.stats import chi2
 
 from ..settings import REGISTRATION
 from ..masks import carries_marks, fiducial_marks
@@ -20,7 +21,7 @@ from .flatfield import correct_image, dense_level, reference_level, stain_field,
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
-                   edge_misfit, EDGE_SD)
+                   edge_misfit, strain, EDGE_SD, SHAPE_NUISANCE)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
@@ -80,6 +81,10 @@ class Settings:
     declared_margin: float = 1.25  # polymer this many times brighter than a declared dense_level: a warning
     reference_spread: float = 0.15  # dense references whose levels differ by more than this share, or one whose block
     # is this uneven (robust sd over median): a warning (a stain, the lamp's field, a block not fully cured)
+    strain_p: float = 0.01  # a fit whose shape nuisance numbers are this unlikely under their priors (pose.strain,
+    # chi-square) ...
+    strain_factor: float = 5.0  # ... and strain this many times the batch's median (at least 1) fails: the template
+    # does not describe the print, and what those numbers take up trades against the pose
     marks_agree_px: float = 1.0  # design px: a print with registration marks whose pose on the marks alone is
     # further than this from the whole print's takes the marks' pose
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
@@ -608,6 +613,16 @@ def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
     if erode > 0:  # a boundary pixel's centre lies 1 px from the nearest unexposed one, its edge 0.5 px
         on = np.clip(cv2.distanceTransform(on.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - erode, 0.0, 1.0)
     return float(cv2.GaussianBlur(on.astype(np.float32), (0, 0), max(blur, 0.3)).max())
+
+
+def speck_peak(area_px: float, blur: float) -> float:
+    """The brightest a cured speck of ``area_px`` design px (a disc) images at, as a share
+    of its density, under a blur of ``blur`` design px (``imaged_peak``): near the
+    threshold the cells' scatter cures specks of a feature, not the whole of it."""
+    r = float(np.sqrt(area_px / np.pi))
+    n = 2 * int(np.ceil(r + 4 * max(blur, 0.3))) + 1
+    yy, xx = np.mgrid[:n, :n] - (n - 1) / 2
+    return imaged_peak(np.where(xx * xx + yy * yy <= r * r, 255, 0).astype(np.uint8), blur)
 
 
 def predicted_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
@@ -1238,22 +1253,30 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # printed could image that bright: its features cured at the print level, their edges
     # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
     # and blurred by the microscope (thin lines of an eroding batch image far below the
-    # level they cured at), in an image as much dimmer than the batch's median as its
-    # prints' brightness varies (lamp, stain: ``dimmest``)
+    # level they cured at), or a speck as large as the least print that counts
+    # (min_print_px), which is what the cells' scatter cures of a feature dosed near the
+    # threshold, in an image as much dimmer than the batch's median as its prints'
+    # brightness varies (lamp, stain: ``dimmest``)
     erode = max(0.0, -(centre[0] - edge_sd[0]))
     dim = dimmest([choices[mid].fit.gain for mid in placed_ids], s)
     empty, faint = set(), {}
     for mid, n_above in low.items():
         peak = float(smooth[mid].max())
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
-        reach = imaged_peak(masks[mid], float(np.hypot(x[10], 1.0 / sc)), erode)
+        blur = float(np.hypot(x[10], 1.0 / sc))
+        whole = imaged_peak(masks[mid], blur, erode)
+        speck = speck_peak(s.min_print_px, blur)
+        reach = min(whole, speck)
         if np.isfinite(thr) and peak >= max(s.faint_fraction * dim * reach * thr, 6 * corr[mid].noise):
             # polymer this bright may have cured at the print level in features that the
             # microscope's blur spreads below the threshold (thin lines, small dots): not
             # evidence that nothing printed
             faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
-                          f"px (fewer than {s.min_print_px}), and its mask's features, cured at the print level"
-                          + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
+                          f"px (fewer than {s.min_print_px}), and "
+                          + ("its mask's features, cured at the print level"
+                             + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
+                             if whole <= speck else f"a speck of {s.min_print_px} px cured at the print level (what near "
+                             f"the threshold the cells' scatter cures of a feature)")
                           + f", would image at {100 * reach:.0f} % of it"
                           + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
                           + ": whether it printed cannot be told, and it is not empty")
@@ -1261,10 +1284,18 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             empty.add(mid)
 
     # 6. warp, threshold, QC, write
+    # a print whose fit strains its shape nuisance numbers beyond their priors, and far
+    # more than the batch's prints whose features fix their pose do (a template that
+    # misses a lab's hot spot or anisotropy strains them all alike)
+    strains = {mid: strain(choices[mid].fit.q) for mid in (placed_ids if len(placed_ids) >= 3 else todo)
+               if choices[mid].fit is not None}
+    strain_limit = max(float(chi2.isf(s.strain_p, len(SHAPE_NUISANCE))),
+                       s.strain_factor * max(float(np.median(list(strains.values()))) if strains else 0.0, 1.0))
+
     def finish(mid):
         k, mask = corr[mid], masks[mid]
         row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
-                   evidence="", pose_sd="", size_sd="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
+                   evidence="", pose_sd="", size_sd="", strain="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
@@ -1288,9 +1319,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
+        strained = strain(ch.fit.q)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
                    evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
-                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3),
+                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3),
+                   strain=round(strained, 2), blur=round(ch.fit.blur, 3),
                    stain=round(stains[mid], 3) if mid in stains else "")
         for a in range(2):
             for b in range(3):
@@ -1339,6 +1372,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
+        if strained > strain_limit:
+            reasons.append(f"the template does not describe this print: its fit needs a dose gradient across the field and "
+                           f"edge offsets across directions far beyond their priors (chi-square {strained:.1f} over "
+                           f"{len(SHAPE_NUISANCE)} numbers, more than {strain_limit:.1f}: p < {s.strain_p:g} and "
+                           f"{s.strain_factor:g} times the batch's median), and what they take up trades against the pose")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
@@ -1375,7 +1413,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             write_png(out_dir / f"{r['id']}.png", printed)
     bar.close()
     pool.shutdown()
-    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "misfit", "dose", "blur", "stain", "coverage",
+    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "strain", "misfit", "dose", "blur", "stain", "coverage",
             "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
