@@ -406,7 +406,6 @@ REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports th
     ("ambiguous: the mask's symmetry", ("ambiguous: the mask maps",)),
     ("ambiguous: a rival pose", ("ambiguous: a pose",)),
     ("near the threshold", ("near the threshold",)),
-    ("the template does not describe it", ("the template does not describe",)),
     ("does not match its mask", ("does not match",)),
     ("did not converge", ("pose refinement did not converge",)),
     ("scale or rotation off", ("scale ", "rotation ")),

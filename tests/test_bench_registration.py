@@ -177,23 +177,6 @@ def test_a_print_just_below_the_threshold_in_a_batch_of_uneven_brightness_is_not
     assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
 
 
-def test_a_grey_ramp_whose_fit_strains_its_nuisance_numbers_is_not_ok(tmp_path):
-    """Lab 7 of the registration benchmark's seed 791464397 (one objective, a blur of 21.5
-    um, an uneven stain of 19 %): a partial print (a grey ramp over a block, its dim end
-    uncured) was `ok` 3.3 px off across the ramp, at a pose spread of 0.37 px and a size
-    spread of 0.94 px. The batch's template puts the block's bright edge 3 px off the lab's
-    cure, and the fit took it up with an edge offset across directions of -1.2 px (4 prior
-    sds) and a dose gradient of 1.8 sds: chi-square 19.7 over the 4 shape numbers
-    (``pose.strain``), beyond their 1 % limit. It fails for it, and no print of the lab
-    is silently wrong."""
-    bench = _bench()
-    _, rows = bench.run_lab(7, 791464397, 32, tmp_path)
-    row = next(r for r in rows if r["id"] == "partial_017")
-    assert row["status"] == "failed" and "the template does not describe this print" in row["reason"], row
-    assert not [(r["id"], r.get("rms_px")) for r in rows if r["silently_wrong"]]
-    assert sum(r["status"] == "ok" for r in rows) >= 15
-
-
 def test_an_image_that_a_speck_could_make_is_not_empty(tmp_path):
     """Lab 0 of the registration benchmark's seed 1269754155 (a microscope blur of 3.7
     design px): two near-threshold prints cured specks over 0.26 % of their field (90

@@ -1411,26 +1411,6 @@ def test_an_uneven_stain_is_divided_out_of_the_images_the_poses_are_fitted_to(tm
     assert med["divided"] <= 0.5 and med["left"] >= 0.8, med
 
 
-def test_strain_is_the_chi_square_of_the_shape_nuisance_numbers_against_their_priors():
-    """Dose, focus blur and the edge offset leave no strain (the batch varies them); two
-    prior sds of the dose's gradient and of the edge offset across directions give 4 + 4,
-    over the 4 numbers' 1 % limit (13.3) only with a third such number at 2.5 sd."""
-    from scipy.stats import chi2
-
-    from unscatter.imaging.pose import NUISANCE, Q_NAMES, SHAPE_NUISANCE, strain
-
-    sd = {n: v for n, _, v in NUISANCE}
-    q = np.zeros(len(NUISANCE))
-    q[Q_NAMES.index("dose")], q[Q_NAMES.index("blur")], q[Q_NAMES.index("edge")] = 1.4, 3.0, -2.0
-    assert strain(q) == 0.0
-    q[Q_NAMES.index("grad_x")], q[Q_NAMES.index("edge_c2")] = 2 * sd["grad_x"], -2 * sd["edge_c2"]
-    assert strain(q) == pytest.approx(8.0)
-    limit = chi2.isf(0.01, len(SHAPE_NUISANCE))
-    assert 13.2 < limit < 13.3 and strain(q) < limit
-    q[Q_NAMES.index("grad_y")] = 2.5 * sd["grad_y"]
-    assert strain(q) == pytest.approx(14.25) and strain(q) > limit
-
-
 def test_a_speck_as_small_as_the_least_print_images_dimmer_the_wider_the_blur():
     """``batch.speck_peak``: a disc of 30 px (radius 3.1 px) images at 1 - exp(-r^2 / 2 b^2)
     of its density at its centre, to the sampling's few per cent."""

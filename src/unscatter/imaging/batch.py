@@ -12,7 +12,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 from scipy import ndimage
-from scipy.stats import chi2
 
 from ..settings import REGISTRATION
 from ..masks import carries_marks, fiducial_marks
@@ -21,7 +20,7 @@ from .flatfield import correct_image, dense_level, reference_level, stain_field,
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
-                   edge_misfit, strain, EDGE_SD, SHAPE_NUISANCE)
+                   edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
@@ -81,10 +80,6 @@ class Settings:
     declared_margin: float = 1.25  # polymer this many times brighter than a declared dense_level: a warning
     reference_spread: float = 0.15  # dense references whose levels differ by more than this share, or one whose block
     # is this uneven (robust sd over median): a warning (a stain, the lamp's field, a block not fully cured)
-    strain_p: float = 0.01  # a fit whose shape nuisance numbers are this unlikely under their priors (pose.strain,
-    # chi-square) ...
-    strain_factor: float = 5.0  # ... and strain this many times the batch's median (at least 1) fails: the template
-    # does not describe the print, and what those numbers take up trades against the pose
     marks_agree_px: float = 1.0  # design px: a print with registration marks whose pose on the marks alone is
     # further than this from the whole print's takes the marks' pose
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
@@ -1284,18 +1279,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             empty.add(mid)
 
     # 6. warp, threshold, QC, write
-    # a print whose fit strains its shape nuisance numbers beyond their priors, and far
-    # more than the batch's prints whose features fix their pose do (a template that
-    # misses a lab's hot spot or anisotropy strains them all alike)
-    strains = {mid: strain(choices[mid].fit.q) for mid in (placed_ids if len(placed_ids) >= 3 else todo)
-               if choices[mid].fit is not None}
-    strain_limit = max(float(chi2.isf(s.strain_p, len(SHAPE_NUISANCE))),
-                       s.strain_factor * max(float(np.median(list(strains.values()))) if strains else 0.0, 1.0))
-
     def finish(mid):
         k, mask = corr[mid], masks[mid]
         row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
-                   evidence="", pose_sd="", size_sd="", strain="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
+                   evidence="", pose_sd="", size_sd="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
@@ -1319,11 +1306,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
-        strained = strain(ch.fit.q)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
                    evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
-                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3),
-                   strain=round(strained, 2), blur=round(ch.fit.blur, 3),
+                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3),
                    stain=round(stains[mid], 3) if mid in stains else "")
         for a in range(2):
             for b in range(3):
@@ -1372,11 +1357,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
-        if strained > strain_limit:
-            reasons.append(f"the template does not describe this print: its fit needs a dose gradient across the field and "
-                           f"edge offsets across directions far beyond their priors (chi-square {strained:.1f} over "
-                           f"{len(SHAPE_NUISANCE)} numbers, more than {strain_limit:.1f}: p < {s.strain_p:g} and "
-                           f"{s.strain_factor:g} times the batch's median), and what they take up trades against the pose")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
@@ -1413,7 +1393,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             write_png(out_dir / f"{r['id']}.png", printed)
     bar.close()
     pool.shutdown()
-    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "strain", "misfit", "dose", "blur", "stain", "coverage",
+    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "misfit", "dose", "blur", "stain", "coverage",
             "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))

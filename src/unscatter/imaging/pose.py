@@ -285,22 +285,6 @@ def stain_slope(x) -> float:
     return float(x[STAIN_SLOPE]) if len(x) > STAIN_SLOPE else 0.0
 
 
-# The nuisance numbers that move a print's edges against each other rather than all
-# together: the dose's gradient across the field and the edge offset across directions.
-# A fit that needs them far beyond their priors is one that the template does not
-# describe, and what they take up trades against the pose (``strain``).
-SHAPE_NUISANCE = ("grad_x", "grad_y", "edge_c2", "edge_s2")
-
-
-def strain(q) -> float:
-    """Chi-square of a fit's shape nuisance numbers (``SHAPE_NUISANCE``) against their
-    priors in ``NUISANCE`` (mean 0 each), with as many degrees of freedom as numbers.
-    The batch judges it against its own prints' (``batch.Settings.strain_factor``): a
-    template that misses a lab's hot spot or anisotropy strains every print alike."""
-    sd = {n: v for n, _, v in NUISANCE}
-    return float(sum((float(q[Q_NAMES.index(n)]) / sd[n]) ** 2 for n in SHAPE_NUISANCE))
-
-
 def _prior(x, override: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Prior means and standard deviations of the nuisance numbers (and the brightness
     slopes where the batch stains); ``override``: name -> (mean, sd) in their place (the
