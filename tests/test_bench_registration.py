@@ -193,6 +193,21 @@ def test_an_image_that_a_speck_could_make_is_not_empty(tmp_path):
     assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
 
 
+def test_a_print_that_covers_most_of_its_image_is_not_read_as_background_noise(tmp_path):
+    """Lab 6 of the registration benchmark's seed 105045948 (8-bit images of 663 x 642, a
+    scatter of 24.8 um): a cut-off grating printed as one block over 58 % of the field.
+    Its background was fitted right, but its noise was read off the pixels below the
+    image's median, which were polymer: 43 counts against the background's 1.5. Divided by
+    that, its polymer sank below the threshold and it was `empty`. The noise is now read
+    on the blocks the fit kept as background where that is less than half the image
+    (``flatfield.fit_background``), and no print of the lab is `empty` where it printed."""
+    bench = _bench()
+    _, rows = bench.run_lab(6, 105045948, 32, tmp_path)
+    row = next(r for r in rows if r["id"] == "grating_cutoff_024")
+    assert row["truth_solid"] > 0.5 and row["status"] != "empty", row
+    assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
+
+
 def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp_path):
     """Lab 4 of the registration benchmark's seed 147307914 (a zoom set by image, each
     image's camera pixel stated in OME-XML within 0.36 %, a lamp hot spot of 0.19 and an

@@ -1420,3 +1420,4 @@ def test_a_speck_as_small_as_the_least_print_images_dimmer_the_wider_the_blur():
     for b in (0.8, 1.5, 2.5, 3.7):
         assert speck_peak(30, b) == pytest.approx(1 - np.exp(-r2 / (2 * b * b)), abs=0.05), b
     assert speck_peak(30, 3.7) < 0.35 < 0.95 < speck_peak(30, 0.8)
+
