@@ -183,8 +183,8 @@ def test_an_image_that_a_speck_could_make_is_not_empty(tmp_path):
     parts, none above 50 px), and their polymer images at 86 and 93 % of the threshold.
     Their mask's blocks, cured whole, would image at 100 %, so both were `empty`:
     silently wrong. A speck of the least print that counts (30 px) images at 26 % under
-    that blur (``batch.speck_peak``), so they are `faint`: whether they printed cannot be
-    told."""
+    that blur and the image's smoothing (3.9 px in all; ``batch.speck_peak``), so they are
+    `faint`: whether they printed cannot be told."""
     bench = _bench()
     _, rows = bench.run_lab(0, 1269754155, 32, tmp_path)
     for mid in ("near_threshold_005", "near_threshold_027"):

@@ -43,7 +43,8 @@ class Settings:
     min_coverage: float = 0.995
     poly_degree: int = 2
     min_background_snr: float = 5.0
-    min_print_px: int = 30  # mask px above threshold for a print to count as non-empty
+    min_print_px: int = 30  # image px above threshold for a print to count as non-empty (and the area, in design
+    # px, of the least cured speck that the faint test allows for: speck_peak)
     template_sigma: float = 2.0  # mask px
     dense_quantile: float = 0.9
     candidates: int = 3  # distinct coarse poses refined per print
@@ -1248,10 +1249,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # printed could image that bright: its features cured at the print level, their edges
     # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
     # and blurred by the microscope (thin lines of an eroding batch image far below the
-    # level they cured at), or a speck as large as the least print that counts
-    # (min_print_px), which is what the cells' scatter cures of a feature dosed near the
-    # threshold, in an image as much dimmer than the batch's median as its prints'
-    # brightness varies (lamp, stain: ``dimmest``)
+    # level they cured at), or a speck of min_print_px design px, whichever images
+    # dimmer (near the threshold the cells' scatter cures specks of a feature, not all of
+    # it; the test allows for them whatever the print's dose, since a dim image is itself
+    # near the threshold), in an image as much dimmer than the batch's median as its
+    # prints' brightness varies (lamp, stain: ``dimmest``)
     erode = max(0.0, -(centre[0] - edge_sd[0]))
     dim = dimmest([choices[mid].fit.gain for mid in placed_ids], s)
     empty, faint = set(), {}

@@ -35,7 +35,8 @@ def fit_background(img: np.ndarray, degree: int = 2, iters: int = 12):
     """Smooth background surface and noise level of the background pixels.
 
     Fit on a block-averaged copy (fast, less noise); one-sided rejection of bright
-    outliers (polymer); noise from the MAD of full-resolution residuals.
+    outliers (polymer); noise from the MAD of full-resolution residuals (on the blocks
+    kept as background where they are under half of the image).
     """
     H, W = img.shape
     f = max(1, min(H, W) // 96)
