@@ -1268,13 +1268,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # polymer this bright may have cured at the print level in features that the
             # microscope's blur spreads below the threshold (thin lines, small dots): not
             # evidence that nothing printed
+            what = ("its mask's features, cured at the print level"
+                    + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
+                    if whole <= speck else f"a speck of {s.min_print_px} px cured at the print level (what near the "
+                    f"threshold the cells' scatter cures of a feature)")
             faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
-                          f"px (fewer than {s.min_print_px}), and "
-                          + ("its mask's features, cured at the print level"
-                             + (f" and eroded by {erode:.1f} px as this batch's prints may be" if erode > 0 else "")
-                             if whole <= speck else f"a speck of {s.min_print_px} px cured at the print level (what near "
-                             f"the threshold the cells' scatter cures of a feature)")
-                          + f", would image at {100 * reach:.0f} % of it"
+                          f"px (fewer than {s.min_print_px}), and {what}, would image at {100 * reach:.0f} % of it"
                           + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
                           + ": whether it printed cannot be told, and it is not empty")
         else:
