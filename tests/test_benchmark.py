@@ -245,8 +245,14 @@ def test_virtual_lab_prints_go_through_registration(setup, tmp_path):
     batch = open_batch(tmp_path / "work" / "batch")  # one batch in the data contract, all exposures
     assert set(batch.ids) == {p.stem for p in (job / "masks").glob("*.png")}
     assert read_batch_meta(tmp_path / "work" / "batch" / "batch.yaml").exposure_s == 20
-    qc = {r["id"]: r["status"] for r in read_tsv(prints / "qc.tsv")}
-    assert set(qc) == set(batch.ids) and set(qc.values()) <= {"ok", "empty"}
+    qc = {r["id"]: r for r in read_tsv(prints / "qc.tsv")}
+    assert set(qc) == set(batch.ids)
+    for pid, r in qc.items():
+        # a print whose polymer images too faint to tell a speck from nothing fails as 'faint';
+        # that is right only where the lab cured (next to) nothing
+        cured = int(read_mask(tmp_path / "work" / "truth" / "prints" / f"{pid}.png").sum())
+        assert r["status"] in ("ok", "empty") or (r["reason"].startswith("faint") and cured < 200), (pid, r["status"], r["reason"], cured)
+    assert all(qc[print_id("cross", m, 1.0, 1.0)]["status"] == "ok" for m in ("ilt", IDENTICAL))
     # more exposure, more polymer
     solid = {e: read_mask(prints / f"{print_id('cross', 'ilt', 1.0, e)}.png").mean() for e in (0.9, 1.0, 1.1)}
     assert solid[0.9] < solid[1.0] < solid[1.1]
