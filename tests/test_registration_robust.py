@@ -11,7 +11,7 @@ import tifffile
 from unscatter import masks as patterns
 from unscatter.imaging import register_batch, transform_rms_px
 from unscatter.imaging.priors import image_pixel_size_um, rotation_range, scale_range
-from unscatter.io import InputError, read_print, read_tsv, read_yaml, write_png
+from unscatter.io import InputError, read_mask, read_print, read_tsv, read_yaml, write_png
 from unscatter.lab import print_batch
 
 
@@ -874,6 +874,39 @@ def test_a_fine_stars_symmetry_is_found_at_half_resolution():
                                factor=SYMMETRY_FACTOR)
     found = sorted(round(float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))) for R in moves)
     assert {-10, 10} <= set(found) and all(abs(t) % 10 in (0, 1, 9) for t in found), found
+
+
+def test_a_stars_turn_by_a_spoke_is_its_rival_whatever_its_scale(tmp_path):
+    """A pose turned by a spoke about a star's hub is the chosen pose's rival when its
+    rotation lies within the searched range: the turn keeps the scale, so the scale range
+    cannot tell the two apart. Seed 105045948's lab 1: a 21-spoke star, chosen again
+    within the scales of the batch's other prints, fitted a scale 1 % beyond them (its
+    scale rests on its size); the pose turned by a spoke was then out of range, no
+    rival, and the star was `ok` a spoke (17 deg, 66 px) off. Here the pose search gets a
+    scale range 1.5 % below the print's own."""
+    import cv2
+
+    import unscatter.imaging.batch as batch
+    from unscatter.imaging.flatfield import correct_image
+    from unscatter.imaging.pose import pose_of
+    from unscatter.imaging.template import PrintTemplate
+
+    write_png(tmp_path / "masks" / "star.png", patterns.siemens_star(np.random.default_rng(21), spokes=21))
+    print_batch(tmp_path / "masks", tmp_path / "batch", overrides={"microscope": {"rotation_deg": 2.0}}, seed=7,
+                progress=False)
+    s = batch.Settings()
+    k = correct_image("star", next((tmp_path / "batch" / "images").iterdir()), 0.0, s, "divide")
+    img = cv2.GaussianBlur(k.c, (0, 0), 1.0)
+    Mt = _matrix(read_tsv(tmp_path / "batch.truth" / "transforms.tsv")[0])
+    Mg = Mt.copy()
+    Mg[:, 2] -= Mt[:, :2] @ np.array([batch.MARGIN, batch.MARGIN], float)
+    mask = read_mask(tmp_path / "masks" / "star.png")
+    x = np.array(PrintTemplate.START)
+    n = 512 + 2 * batch.MARGIN
+    own = pose_of(Mg, n, img.shape)["scale"]
+    for lo, hi in ((own / 1.02, own * 1.02), (own / 1.05, own / 1.015)):  # about the print's scale; below it
+        ch = batch.choose_pose(mask, img, [Mg], x, s, 512, (lo, hi))
+        assert ch.symmetry is not None and abs(abs(ch.symmetry) - 360 / 21) < 1.0, (lo / own, hi / own, ch.symmetry)
 
 
 ANISOTROPIC_LAB = {"microscope": {"blur_px": [3.0, 3.0], "rotation_deg": 10.0},

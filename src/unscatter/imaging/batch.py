@@ -255,7 +255,10 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
                                         shifts=False, dip=s.symmetric_dip, factor=SYMMETRY_FACTOR)
     for R in symmetries:
         alt = (h3(best[0].M) @ R)[:2]
-        if in_range(alt) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
+        # the turn keeps the scale: only the rotation can put the turned pose out of range (a
+        # star whose fitted scale, resting on its size, lay 1 % beyond the batch's range had
+        # no rival by it, and was `ok` a spoke, 66 px, off)
+        if in_range(alt, factor=float("inf")) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
     return PoseChoice(best[0], z_min, rival, len(fits))
 
