@@ -11,12 +11,29 @@ import tifffile
 from unscatter import masks as patterns
 from unscatter.imaging import register_batch, transform_rms_px
 from unscatter.imaging.priors import image_pixel_size_um, rotation_range, scale_range
-from unscatter.io import InputError, read_mask, read_print, read_tsv, read_yaml, write_png
+from unscatter.io import InputError, read_print, read_tsv, read_yaml, write_png
 from unscatter.lab import print_batch
 
 
 def _matrix(row):
     return np.array([[float(row[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
+
+
+def _printed_alone(root, name, mask, overrides, seed):
+    """One mask printed on the virtual lab: its corrected image, smoothed as the pose
+    search sees it, and the true pose on the registration's padded grid."""
+    import cv2
+
+    from unscatter.imaging.batch import MARGIN, Settings
+    from unscatter.imaging.flatfield import correct_image
+
+    write_png(root / "masks" / f"{name}.png", mask)
+    print_batch(root / "masks", root / "batch", overrides=overrides, seed=seed, progress=False)
+    k = correct_image(name, next((root / "batch" / "images").iterdir()), 0.0, Settings(), "divide")
+    Mt = _matrix(read_tsv(root / "batch.truth" / "transforms.tsv")[0])
+    Mg = Mt.copy()
+    Mg[:, 2] -= Mt[:, :2] @ np.array([MARGIN, MARGIN], float)  # design -> grid
+    return cv2.GaussianBlur(k.c, (0, 0), 1.0), Mg
 
 
 def _pose_errors(reg_dir, truth_dir):
@@ -117,24 +134,15 @@ def test_a_grating_whose_fits_stay_a_pitch_either_side_finds_the_pose_between(tm
     is a rival of the other, but the pose halfway between fits far better: it is refined
     and chosen (before, the print was ok a pitch off, with no rival). The template's
     numbers are the ones this lab's batch of 32 test prints fitted."""
-    import cv2
-
     import unscatter.imaging.batch as batch
-    from unscatter.imaging.flatfield import correct_image
     from unscatter.lab import random_lab
     from unscatter.masks import test_pattern_masks
 
     over = random_lab(np.random.default_rng([172094, 3, 0]))
     mask = test_pattern_masks(32, seed=3071290980)["grating_014"]
-    write_png(tmp_path / "masks" / "grating_014.png", mask)
-    print_batch(tmp_path / "masks", tmp_path / "batch", overrides=over, seed=5, progress=False)
+    img, Mg = _printed_alone(tmp_path, "grating_014", mask, over, 5)
     x = np.array([5.7914, 0.3394, 0.1517, 0.1242, -0.1236, 0.1681, -0.0728, 0.0105, -0.2713, 15.0, 4.0354, 0.2849, 9.6736])
     s = batch.Settings()
-    k = correct_image("grating_014", next((tmp_path / "batch" / "images").iterdir()), 0.0, s, "divide")
-    img = cv2.GaussianBlur(k.c, (0, 0), 1.0)
-    Mt = _matrix(read_tsv(tmp_path / "batch.truth" / "transforms.tsv")[0])
-    Mg = Mt.copy()
-    Mg[:, 2] -= Mt[:, :2] @ np.array([batch.MARGIN, batch.MARGIN], float)
     starts = []
     for sign in (1, -1):  # the lines run along x: a pitch is 25 px along y
         off = Mg.copy()
@@ -884,23 +892,13 @@ def test_a_stars_turn_by_a_spoke_is_its_rival_whatever_its_scale(tmp_path):
     scale rests on its size); the pose turned by a spoke was then out of range, no
     rival, and the star was `ok` a spoke (17 deg, 66 px) off. Here the pose search gets a
     scale range 1.5 % below the print's own."""
-    import cv2
-
     import unscatter.imaging.batch as batch
-    from unscatter.imaging.flatfield import correct_image
     from unscatter.imaging.pose import pose_of
     from unscatter.imaging.template import PrintTemplate
 
-    write_png(tmp_path / "masks" / "star.png", patterns.siemens_star(np.random.default_rng(21), spokes=21))
-    print_batch(tmp_path / "masks", tmp_path / "batch", overrides={"microscope": {"rotation_deg": 2.0}}, seed=7,
-                progress=False)
+    mask = patterns.siemens_star(np.random.default_rng(21), spokes=21)
+    img, Mg = _printed_alone(tmp_path, "star", mask, {"microscope": {"rotation_deg": 2.0}}, 7)
     s = batch.Settings()
-    k = correct_image("star", next((tmp_path / "batch" / "images").iterdir()), 0.0, s, "divide")
-    img = cv2.GaussianBlur(k.c, (0, 0), 1.0)
-    Mt = _matrix(read_tsv(tmp_path / "batch.truth" / "transforms.tsv")[0])
-    Mg = Mt.copy()
-    Mg[:, 2] -= Mt[:, :2] @ np.array([batch.MARGIN, batch.MARGIN], float)
-    mask = read_mask(tmp_path / "masks" / "star.png")
     x = np.array(PrintTemplate.START)
     n = 512 + 2 * batch.MARGIN
     own = pose_of(Mg, n, img.shape)["scale"]
