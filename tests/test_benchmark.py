@@ -249,9 +249,10 @@ def test_virtual_lab_prints_go_through_registration(setup, tmp_path):
     assert set(qc) == set(batch.ids)
     for pid, r in qc.items():
         # a print whose polymer images too faint to tell a speck from nothing fails as 'faint';
-        # that is right only where the lab cured (next to) nothing
-        cured = int(read_mask(tmp_path / "work" / "truth" / "prints" / f"{pid}.png").sum())
-        assert r["status"] in ("ok", "empty") or (r["reason"].startswith("faint") and cured < 200), (pid, r["status"], r["reason"], cured)
+        # that is right only where the lab cured next to nothing (under 0.05 % of the field, as
+        # benchmarks/bench_registration.py counts an empty print that printed)
+        cured = float((read_mask(tmp_path / "work" / "truth" / "prints" / f"{pid}.png") > 0).mean())
+        assert r["status"] in ("ok", "empty") or (r["reason"].startswith("faint") and cured < 5e-4), (pid, r["status"], r["reason"], cured)
     assert all(qc[print_id("cross", m, 1.0, 1.0)]["status"] == "ok" for m in ("ilt", IDENTICAL))
     # more exposure, more polymer
     solid = {e: read_mask(prints / f"{print_id('cross', 'ilt', 1.0, e)}.png").mean() for e in (0.9, 1.0, 1.1)}
