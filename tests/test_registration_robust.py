@@ -21,19 +21,18 @@ def _matrix(row):
 
 def _printed_alone(root, name, mask, overrides, seed):
     """One mask printed on the virtual lab: its corrected image, smoothed as the pose
-    search sees it, and the true pose on the registration's padded grid."""
+    search sees it, and the true pose on the registration's padded grid (``to_design``
+    the other way)."""
     import cv2
 
     from unscatter.imaging.batch import MARGIN, Settings
     from unscatter.imaging.flatfield import correct_image
+    from unscatter.imaging.pose import to_design
 
     write_png(root / "masks" / f"{name}.png", mask)
     print_batch(root / "masks", root / "batch", overrides=overrides, seed=seed, progress=False)
     k = correct_image(name, next((root / "batch" / "images").iterdir()), 0.0, Settings(), "divide")
-    Mt = _matrix(read_tsv(root / "batch.truth" / "transforms.tsv")[0])
-    Mg = Mt.copy()
-    Mg[:, 2] -= Mt[:, :2] @ np.array([MARGIN, MARGIN], float)  # design -> grid
-    return cv2.GaussianBlur(k.c, (0, 0), 1.0), Mg
+    return cv2.GaussianBlur(k.c, (0, 0), 1.0), to_design(_matrix(read_tsv(root / "batch.truth" / "transforms.tsv")[0]), -MARGIN)
 
 
 def _pose_errors(reg_dir, truth_dir):
@@ -100,7 +99,7 @@ def test_a_grating_started_one_pitch_off_is_never_ok_there(grating_batch):
     import cv2
 
     from unscatter.imaging.batch import MARGIN, Settings, choose_pose, predicted_print
-    from unscatter.imaging.pose import merged_features, size_spread
+    from unscatter.imaging.pose import merged_features, size_spread, to_design
     from unscatter.imaging.flatfield import correct_image
     from unscatter.imaging.template import PrintTemplate
     from unscatter.io import read_mask, read_yaml
@@ -113,9 +112,7 @@ def test_a_grating_started_one_pitch_off_is_never_ok_there(grating_batch):
         k = correct_image(mid, grating_batch / "batch" / "images" / f"{mid}.tif", 100.0, s, reg["flatfield"])
         img = cv2.GaussianBlur(k.c, (0, 0), 1.0)
         mask = read_mask(grating_batch / "batch" / "masks" / f"{mid}.png")
-        Mt = _matrix(truth[mid])
-        Mg = Mt.copy()
-        Mg[:, 2] -= Mt[:, :2] @ np.array([MARGIN, MARGIN], float)  # design -> grid
+        Mg = to_design(_matrix(truth[mid]), -MARGIN)  # design -> grid
         across = np.array([0.0, 1.0]) if mid == "grating_1" else np.array([1.0, 0.0])  # 90 deg: lines along x
         off = Mg.copy()
         off[:, 2] += Mg[:, :2] @ (pitch * across)
