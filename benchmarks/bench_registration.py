@@ -98,7 +98,8 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
         row = dict(id=mid, status=q["status"], reason=q.get("reason", ""), truth_solid=float(tp.mean()),
                    true_rotation_deg=_float(t["rotation_deg"]), true_scale=_float(t["scale"]),
                    rotation_deg=_float(q.get("rotation_deg")), scale=_float(q.get("scale")), score=_float(q.get("score")),
-                   pose_sd=_float(q.get("pose_sd")), size_sd=_float(q.get("size_sd")))
+                   pose_sd=_float(q.get("pose_sd")), size_sd=_float(q.get("size_sd")),
+                   model_sd=_float(q.get("model_sd")))
         Mt, Me = _matrix(t), _matrix(q)
         if Me is not None:
             row["rms_px"] = transform_rms_px(Me, Mt, size)
@@ -380,7 +381,8 @@ def qc_lines(rows: list[dict]) -> list[str]:
     error (a failure with the pose in fact within SILENT_POSE_PX is QC too cautious; one
     further off, QC catching a wrong pose; no pose: nothing to register, or no pose
     refined), and the ok prints' true error against the spreads QC judged them by
-    (``pose_sd``: noise and template misfit; ``size_sd``: feature sizes)."""
+    (``pose_sd``: noise and template misfit; ``size_sd``: feature sizes, alone and in
+    quadrature with ``model_sd``, the scatter kernel's shape, as QC weighs them)."""
     failed = [r for r in rows if r["status"] == "failed"]
     err = np.array([r.get("rms_px", np.nan) for r in failed], float)
     good, off = int(np.sum(err <= SILENT_POSE_PX)), int(np.sum(err > SILENT_POSE_PX))
@@ -388,8 +390,10 @@ def qc_lines(rows: list[dict]) -> list[str]:
          f"off (QC right), {len(failed) - good - off} without a pose"]
     ok = [r for r in rows if r["status"] == "ok" and np.isfinite(r.get("rms_px", np.nan))]
     e = np.array([r["rms_px"] for r in ok])
-    for name in ("pose_sd", "size_sd"):
-        sd = np.array([r.get(name, np.nan) for r in ok], float)
+    spreads = {name: np.array([r.get(name, np.nan) for r in ok], float) for name in ("pose_sd", "size_sd")}
+    # the kernel's move is a sensitivity, not a spread of its own: QC weighs it with size_sd
+    spreads["size_sd with model_sd"] = np.hypot(spreads["size_sd"], np.nan_to_num(np.array([r.get("model_sd", 0.0) for r in ok], float)))
+    for name, sd in spreads.items():
         keep = np.isfinite(sd) & (sd > 0)
         if keep.any():
             z = e[keep] / sd[keep]
@@ -402,6 +406,7 @@ def qc_lines(rows: list[dict]) -> list[str]:
 REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports them
     ("faint", ("faint",)),
     ("scale rests on a feature's size", ("pose not determined by the print: its scale",)),
+    ("pose rests on the kernel's shape", ("pose not determined by the print: it rests on the shape",)),
     ("pose uncertain or free", ("pose not determined by the print: uncertain", "pose not determined by the print: free")),
     ("ambiguous: the mask's symmetry", ("ambiguous: the mask maps",)),
     ("ambiguous: a rival pose", ("ambiguous: a pose",)),
@@ -492,7 +497,7 @@ def random_labs(a) -> None:
         rows += rr
         print(lab_line(lab, rr) + f" (printing {lab['print_s']:.1f} s)", flush=True)
     cols = ["lab", "id", "pattern", "status", "reason", "rms_px", "iou", "iou_perfect", "truth_solid", "silently_wrong",
-            "score", "rotation_deg", "true_rotation_deg", "scale", "true_scale", "pose_sd", "size_sd"]
+            "score", "rotation_deg", "true_rotation_deg", "scale", "true_scale", "pose_sd", "size_sd", "model_sd"]
     write_tsv(out / "prints.tsv", rows, cols)
     write_yaml(out / "labs.yaml", dict(seed=seed, labs={f"lab_{lab['index']:02d}": lab["overrides"] for lab in labs}))
     text = summarize(seed, labs, rows, cmd)

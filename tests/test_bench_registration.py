@@ -265,3 +265,20 @@ def test_a_stained_batch_fits_each_prints_brightness_slopes_with_its_pose(tmp_pa
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
     ok = [r["rms_px"] for r in rows if r["status"] == "ok"]
     assert len(ok) >= 20 and np.median(ok) <= 0.4, ok
+
+
+def test_a_grey_ramp_whose_pose_rests_on_the_kernels_shape_is_not_ok(tmp_path):
+    """Lab 1 of the registration benchmark's seed 105045948 (a scatter of 22.8 um with an
+    exponential tail of 32 % at 48 um, which the batch's template fits as 3 % at 39 px): a
+    block under a grey ramp printed where the dose is high, its cut where the dose places
+    it. Its pose along the ramp rests on the bright end's edge, whose place the kernel's
+    shape sets; it was `ok` 4.66 px off along the ramp with a size spread of 0.89 px. The
+    fit moves its pose by over 1.5 px when the kernel's tail or width changes
+    (``pose.kernel_spread``), so it fails on the kernel's shape, and no print of the lab
+    is silently wrong."""
+    bench = _bench()
+    _, rows = bench.run_lab(1, 105045948, 32, tmp_path)
+    row = next(r for r in rows if r["id"] == "partial_011")
+    assert row["status"] == "failed" and "shape of the scatter kernel" in row["reason"], row
+    assert row["model_sd"] > 1.5 and row["size_sd"] < 1.5, row
+    assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]

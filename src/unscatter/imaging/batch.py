@@ -18,7 +18,8 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
+from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
+                   kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
@@ -1064,6 +1065,20 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
              "their %d features off their places by %.3f of how far the dose moves their edges", place_sd,
              "none" if misfit is None else f"{misfit:.2f} px", len(placed_ids), place_features, place_dose)
     edge_prior = dict(zip(("edge", "edge_c2", "edge_s2"), zip(centre, edge_sd)))
+
+    # how far the batch's scatter kernel is off in shape, as the prints whose features place
+    # their pose show it (``kernel_moves``' shares, ``kernel_error``): each print's pose
+    # spread from the kernel's shape (5d') is its move at that much change
+    def kernel_share(mid):
+        f = choices[mid].fit
+        return kernel_moves(full, full.padded(masks[mid]), exposure_of(mid), x, f, s.mode,
+                            image=warp_to_design(smooth[mid], f.M, grid))[1]
+
+    kernel_off, kernel_prints = kernel_error(list(pool.map(kernel_share, placed_ids)), s.size_min_prints)
+    log.info("scatter kernel's shape: off by %.2f of a tail share of %.2f (and %.2f of a width change of %.0f %%, not "
+             "counted) from %d prints whose features place their pose%s", kernel_off["tail"], KERNEL_TAIL,
+             kernel_off["wider"], 100 * (KERNEL_WIDTH - 1), kernel_prints,
+             "" if kernel_prints >= s.size_min_prints else ": too few to measure it, assumed")
     one_scale = batch_scale(placed, s)
     held_scale = None if one_scale is None else one_magnification_held(one_scale, len(placed), s)
     if one_scale is not None:
@@ -1157,6 +1172,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
+            f.scale_held = held_at is not None
             Tf = predicted_print(full, B, x, f)
             f.size_sd, f.sizes_sd = spreads_of(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
                                                dose_response(full, B, x, f, Tf), dose_ref)
@@ -1240,13 +1256,28 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                 place_dose_sd=place_dose)
         log.info("%s: posed on its registration marks, %.2f px from the pose of the whole print (pose spread %.2f -> "
                  "%.2f px)", mid, d, f.pose_sd, g.pose_sd)
+        posed_on_marks.add(mid)
         return g
 
+    posed_on_marks = set()
     marked = [mid for mid in todo if choices[mid].fit is not None and carries_marks(masks[mid])]
     if marked:
         B_marks = full.exposure(full.padded(marks_only), x)
         for mid, g in zip(marked, pool.map(on_marks, marked)):
             choices[mid].fit = g
+
+    # 5d'. how far each pose rests on the shape of the batch's scatter kernel, which its
+    # template knows only roughly (``kernel_spread``): a grey ramp's pose along the ramp
+    # rests on the edge at its bright end, whose place the kernel's shape sets
+    def kernel_moved(mid):
+        f = choices[mid].fit
+        if mid in posed_on_marks:
+            return kernel_spread(kernel_moves(full, full.padded(marks_only), B_marks, x, f, s.mode)[0], kernel_off)
+        return kernel_spread(kernel_moves(full, full.padded(masks[mid]), exposure_of(mid), x, f, s.mode)[0], kernel_off)
+
+    fitted = [mid for mid in todo if choices[mid].fit is not None]
+    for mid, moved in zip(fitted, pool.map(kernel_moved, fitted)):
+        choices[mid].fit.model_sd = moved
 
     # 5e. an image too faint to register is empty only where nothing that its mask may have
     # printed could image that bright: its features cured at the print level, their edges
@@ -1286,7 +1317,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def finish(mid):
         k, mask = corr[mid], masks[mid]
         row = dict(id=mid, status="ok", reason="", rotation_deg="", scale="", shift_x="", shift_y="", score="",
-                   evidence="", pose_sd="", size_sd="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
+                   evidence="", pose_sd="", size_sd="", model_sd="", misfit="", dose="", blur="", stain="", threshold=thr, dense_level=dense, flatfield=ff_mode, coverage="", solid_fraction="",
                    mask=os.path.relpath(batch.masks[mid].resolve(), final_dir.resolve()), image=str(batch.images[mid]))
         if mid in odd:
             row.update(status="failed", reason=f"not a print image: {odd[mid]}")
@@ -1312,7 +1343,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         cov = coverage(M, mask, k.c.shape)
         row.update(**{kk: round(v, 4) for kk, v in pose.items()}, score=round(score, 4), coverage=round(cov, 4),
                    evidence=round(ch.evidence, 2) if np.isfinite(ch.evidence) else "inf", dose=round(ch.fit.dose, 4),
-                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3), blur=round(ch.fit.blur, 3),
+                   pose_sd=round(min(ch.fit.pose_sd, 1e6), 3), size_sd=round(min(ch.fit.size_sd, 1e6), 3),
+                   model_sd=round(min(ch.fit.model_sd, 1e6), 3), blur=round(ch.fit.blur, 3),
                    stain=round(stains[mid], 3) if mid in stains else "")
         for a in range(2):
             for b in range(3):
@@ -1361,6 +1393,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
+        elif not np.hypot(ch.fit.size_sd, ch.fit.model_sd) <= s.max_size_sd:
+            reasons.append(f"pose not determined by the print: it rests on the shape of the scatter kernel, which the batch's "
+                           f"template knows only roughly (an edge on a grey ramp or at a dose near the cure threshold, with "
+                           f"no edge opposite it that moves alike): the fit moves it by {min(ch.fit.model_sd, 1e6):.2f} px "
+                           f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
+                           f"batch's prints show it off; with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
+                           f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
@@ -1397,7 +1436,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             write_png(out_dir / f"{r['id']}.png", printed)
     bar.close()
     pool.shutdown()
-    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "misfit", "dose", "blur", "stain", "coverage",
+    cols = ["id", "status", "reason", "rotation_deg", "scale", "shift_x", "shift_y", "score", "evidence", "pose_sd", "size_sd", "model_sd", "misfit", "dose", "blur", "stain", "coverage",
             "threshold", "dense_level", "flatfield", "solid_fraction", "mask", "image"] + [f"m{a}{b}" for a in range(2) for b in range(3)]
     write_tsv(out_dir / "qc.tsv", rows, cols)
     write_yaml(out_dir / "batch.yaml", dict(meta, source_batch=str(batch_dir)))
@@ -1410,6 +1449,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed),
                                                        held_within=held_scale[1]),
                                                    edge_places=edge_places, feature_sizes=feature_sizes,
+                                                   kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
+                                                                     tail_share=KERNEL_TAIL, width_change=KERNEL_WIDTH - 1,
+                                                                     width_counted=False, prints=kernel_prints),
                                                    stain=dict(prints=len(stains), sigma_px=s.stain_sigma_px, min_sd=s.stain_min_sd,
                                                               template_refitted=stain_refit),
                                                    stated_scatter=scatter))
