@@ -273,7 +273,7 @@ def test_a_grey_ramp_whose_pose_rests_on_the_kernels_shape_is_not_ok(tmp_path):
     block under a grey ramp printed where the dose is high, its cut where the dose places
     it. Its pose along the ramp rests on the bright end's edge, whose place the kernel's
     shape sets; it was `ok` 4.66 px off along the ramp with a size spread of 0.89 px. The
-    fit moves its pose by over 1.5 px when the kernel's tail or width changes
+    fit moves its pose by over 1.5 px when the kernel's tail changes
     (``pose.kernel_spread``), so it fails on the kernel's shape, and no print of the lab
     is silently wrong."""
     bench = _bench()

@@ -1398,7 +1398,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"template knows only roughly (an edge on a grey ramp or at a dose near the cure threshold, with "
                            f"no edge opposite it that moves alike): the fit moves it by {min(ch.fit.model_sd, 1e6):.2f} px "
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
-                           f"batch's prints show it off; with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
+                           f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
@@ -1450,7 +1450,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                        held_within=held_scale[1]),
                                                    edge_places=edge_places, feature_sizes=feature_sizes,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
-                                                                     tail_share=KERNEL_TAIL, width_change=KERNEL_WIDTH - 1,
+                                                                     tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
                                                                      width_counted=False, prints=kernel_prints),
                                                    stain=dict(prints=len(stains), sigma_px=s.stain_sigma_px, min_sd=s.stain_min_sd,
                                                               template_refitted=stain_refit),

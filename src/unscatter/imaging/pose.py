@@ -810,7 +810,9 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     weights) from its template T to the changed template Tk, on T's grid: the pose at
     its scale (held: the shift and the turn), gain, offset and the print's nuisance
     numbers (dose, blur, dose gradient, edge offsets, brightness slopes) with their
-    priors, the data weighed by the fit's gain over its residual's scale. Returns the
+    default priors (``_prior``; a print refitted with the batch's edge offsets had tighter
+    ones, which would move its pose further: the move is then, if anything, low), the
+    data weighed by the fit's gain over its residual's scale. Returns the
     move (design px, RMS over the field) and, with ``image`` (the print's image on T's
     grid in the image's units, NaN outside it), change -> (k, sd) for the tail's change
     and the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the
@@ -905,7 +907,7 @@ def kernel_spread(move: float, error: dict) -> float:
     batch's prints held 0.5 of the change: what their residuals hold did not move its
     scale. A print's scale resting
     on its features' sizes is ``size_spread``'s, measured on the batch's sizes."""
-    return float(move * error["tail"])
+    return float(move * error["tail"]) if np.isfinite(move) else float("inf")  # inf x a share of 0 is no number
 
 
 KERNEL_UNMEASURED = 0.5  # kernel_error: the share assumed where too few prints measure it
@@ -921,7 +923,7 @@ def kernel_error(shares: list, min_prints: int, cap: float = 3.0) -> tuple[dict,
     between our own lab's shares (under 0.25) and those of a lab whose template lacks
     most of its tail (0.6 to 0.9). Returns (change -> share, prints)."""
     rows = [s for s in shares if s is not None and all(np.isfinite(v[0]) for v in s.values())]
-    if len(rows) < min_prints:
+    if len(rows) < max(min_prints, 1):
         return {k: KERNEL_UNMEASURED for k in KERNEL_CHANGES}, len(rows)
     return {k: float(min(np.sqrt(np.median([r[k][0] ** 2 for r in rows]) / 0.455), cap)) for k in KERNEL_CHANGES}, len(rows)
 
