@@ -807,18 +807,17 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
 
     For the kernel's tail share up by KERNEL_TAIL (``_kernel_changed``), the pose part
     of one Gauss-Newton step of the print's fit (``refine``'s objective without its Huber
-    weights) from its template T to the changed template Tk, on T's grid: the pose at
-    its scale (held: the shift and the turn), gain, offset and the print's nuisance
+    weights) from its template T to the changed template Tk, on T's window (``_window``):
+    the pose at its scale (held: the shift and the turn), gain, offset and the print's nuisance
     numbers (dose, blur, dose gradient, edge offsets, brightness slopes) with their
     default priors (``_prior``; a print refitted with the batch's edge offsets had tighter
     ones, which would move its pose further: the move is then, if anything, low), the
     data weighed by the fit's gain over its residual's scale. Returns the
     move (design px, RMS over the field) and, with ``image`` (the print's image on T's
-    grid in the image's units, NaN outside it), change -> (k, sd) for the tail's change
-    and the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the
-    scale held only where the print's fit held it): the
-    share of each change (1: all of it) that the print's residual holds, and its
-    standard deviation; None without an image.
+    grid in the image's units, NaN outside it), change -> k for the tail's change and
+    the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the scale
+    held only where the print's fit held it): the share of each change (1: all of it)
+    that the print's residual holds; None without an image.
 
     A change of the kernel's shape moves an edge by how far its cure level sits from
     half the dose: an edge between full dose and nothing hardly moves, one at a grey
@@ -837,10 +836,7 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     n = T.shape[0]
     c = (n - 1) / 2
     corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
-    # the window the print can reach: its template above 2 % of its peak, widened by the band
-    rows, cols = np.nonzero(T > 0.02 * top)
-    r0, r1 = max(int(rows.min()) - band, 0), min(int(rows.max()) + band + 1, n)
-    c0, c1 = max(int(cols.min()) - band, 0), min(int(cols.max()) + band + 1, n)
+    (r0, r1), (c0, c1) = _window(T, band)  # the window the print can reach
     win = (slice(r0, r1), slice(c0, c1))
     Tw = T[win].astype(np.float64)
     gy, gx = np.gradient(Tw)
@@ -860,7 +856,7 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     _, qs = _prior(x)
     nq = min(len(d), len(qs))
 
-    def solved(cols, valid=None, hold=fit.scale_held):
+    def solved(cols, hold: bool, valid=None):
         """The normal matrix of ``cols`` (scaled to unit norm) over the window's pixels
         (``valid``: those only), with the priors and the scale held (``hold``), and the
         columns' norms."""
@@ -875,7 +871,7 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
         H[np.diag_indices_from(H)] += 1e-9 * float(np.trace(H)) / len(H)
         return A, H, norm
 
-    A, H, norm = solved(columns, hold=True)  # the move at the print's scale (kernel_spread: why)
+    A, H, norm = solved(columns, True)  # the move at the print's scale (kernel_spread: why)
     z = np.linalg.solve(H, A.T @ changed["tail"].ravel() / fit.sigma) / norm
     out = _field_rms(np.outer(z[:npose], z[:npose]), mode, corners)
     if image is None:
@@ -884,11 +880,10 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     valid = np.isfinite(seen)
     if valid.sum() < len(columns) + 2:
         return out, None
-    A, H, norm = solved(columns + [changed["tail"], changed["wider"]], valid)
+    A, H, norm = solved(columns + [changed["tail"], changed["wider"]], fit.scale_held, valid)
     r = (seen - fit.gain * Tw - fit.offset)[valid] / fit.sigma
     z = np.linalg.solve(H, A.T @ r) / norm
-    cov = np.linalg.inv(H) / np.outer(norm, norm)
-    return out, {k: (float(z[-2 + i]), float(np.sqrt(max(cov[-2 + i, -2 + i], 0.0)))) for i, k in enumerate(KERNEL_CHANGES)}
+    return out, {k: float(z[-2 + i]) for i, k in enumerate(KERNEL_CHANGES)}
 
 
 def kernel_spread(move: float, error: dict) -> float:
@@ -922,10 +917,10 @@ def kernel_error(shares: list, min_prints: int, cap: float = 3.0) -> tuple[dict,
     prints, KERNEL_UNMEASURED: assumed, as a small batch's size error is (``Settings.size_sd``),
     between our own lab's shares (under 0.25) and those of a lab whose template lacks
     most of its tail (0.6 to 0.9). Returns (change -> share, prints)."""
-    rows = [s for s in shares if s is not None and all(np.isfinite(v[0]) for v in s.values())]
+    rows = [s for s in shares if s is not None and all(np.isfinite(v) for v in s.values())]
     if len(rows) < max(min_prints, 1):
         return {k: KERNEL_UNMEASURED for k in KERNEL_CHANGES}, len(rows)
-    return {k: float(min(np.sqrt(np.median([r[k][0] ** 2 for r in rows]) / 0.455), cap)) for k in KERNEL_CHANGES}, len(rows)
+    return {k: float(min(np.sqrt(np.median([r[k] ** 2 for r in rows]) / 0.455), cap)) for k in KERNEL_CHANGES}, len(rows)
 
 
 FEATURE_MIN_EDGE = 40  # feature_places: boundary pixels a feature needs for its place to count
