@@ -410,8 +410,8 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
         return priors, "", 0.0
     log.warning("the stated camera pixel size is contradicted by %d prints whose features fix their scale: they are %+.2f %% "
                 "off it, more than its tolerance; it is not used", len(d), 100 * off)
-    return {}, (f"; the stated camera pixel size, which would fix it, is not used: the prints whose features fix their "
-                f"scale are {100 * off:+.2f} % off it, more than its tolerance"), off
+    return {}, (f": the stated camera pixel size, which would fix it, is not used (the prints whose features fix their "
+                f"scale are {100 * off:+.2f} % off it, more than its tolerance)"), off
 
 
 def field_radius_px(design_px: int) -> float:
@@ -1121,8 +1121,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         that its prints show): a stated one (``priors``)."""
         if stated.get(mid) is not None or held_scale is not None:
             return ""
-        return ("; no camera pixel size is stated, which would hold its scale: batch.yaml image_pixel_size_um (one "
-                "objective), or each image's TIFF resolution tags or OME-XML PhysicalSizeX")
+        # joined with ": ", not "; ", which separates a print's reasons (``determinacy_only``)
+        return (": no camera pixel size is stated, which would hold its scale (batch.yaml image_pixel_size_um for one "
+                "objective, or each image's TIFF resolution tags or OME-XML PhysicalSizeX)")
 
     def off_scale(M) -> bool:
         return one_scale is not None and abs(log_scale(M) - one_scale[0]) > s.scale_sigmas * one_scale[1]
