@@ -467,15 +467,17 @@ def test_the_loop_names_the_lab_effect(case, tmp_path, effect):
 def test_fits_in_worker_processes_give_the_same_diagnosis_as_in_one(case, tmp_path, caplog):
     """The fits of a round run in worker processes (``workers``); each depends only on its
     start, prints and seed, so the selected model, every candidate's held-out errors and
-    fitted parameters are the same as in one process, to the last digit."""
+    fitted parameters are the same as in one process, to the last digit; also where the
+    folds of a candidate with spectra of its own (illumination_field) run as one task."""
     c = case("edge_offset")
     runs = {}
     for w in (1, 2):
         caplog.clear()
         with caplog.at_level("INFO", logger="unscatter.diagnosis"):
-            r = diagnose([c.prints], c.params, tmp_path / f"w{w}", quick=True, seed=0, candidates=["edge_offset", "heavy_tail"],
-                         figures=False, workers=w, **QUIET)
+            r = diagnose([c.prints], c.params, tmp_path / f"w{w}", quick=True, seed=0,
+                         candidates=["edge_offset", "heavy_tail", "illumination_field"], figures=False, workers=w, **QUIET)
         assert ("the fits run in 2 worker processes" in caplog.text) == (w == 2)
+        assert ("the folds of +illumination_field run as one task" in caplog.text) == (w == 2)
         assert "worker processes stopped" not in caplog.text
         rows = read_tsv(tmp_path / f"w{w}" / "ranking.tsv")
         runs[w] = (r["effects"], [(x["round"], x["candidate"], x["heldout_mismatch"], x["effect_params"]) for x in rows],

@@ -193,6 +193,34 @@ def test_fixed_masks_evaluator_equals_model():
         fm.dose(m.theta(dict(TRUTHY, sigma_px=9.0), CPU))
 
 
+def test_evaluators_sharing_a_cache_share_decimations_and_subsets_and_compute_the_same():
+    """Evaluators of the same masks that share a spectra cache (the diagnosis's candidates
+    and folds) take the decimated and subset spectra from it, keyed by how they derive,
+    and compute what an evaluator without a cache computes; another subset, another
+    factor or another basis is not confused with them."""
+    from unscatter.masks import trial_masks
+    from unscatter.model import extend_params, get_model
+
+    m = eq1()
+    M = masks_to_tensor(np.stack(list(trial_masks(4, seed=2, size=96).values())), CPU)
+    th = m.theta(TRUTHY, CPU)
+    cache: dict = {}
+    a, b, plain = FixedMasks(m, M, 24.0, cache=cache), FixedMasks(m, M, 24.0, cache=cache), FixedMasks(m, M, 24.0)
+    assert a.spectra is b.spectra
+    assert a.decimated(2).spectra is b.decimated(2).spectra
+    assert a.decimated(2).subset([3, 1]).spectra is b.decimated(2).subset([3, 1]).spectra
+    assert a.decimated(2).subset([1, 3]).spectra is not a.decimated(2).subset([3, 1]).spectra
+    assert a.decimated(4).spectra.shape != a.decimated(2).spectra.shape
+    for f, idx in ((2, [3, 1]), (2, [1, 3]), (4, [0, 2, 3]), (1, [2])):
+        got = (b.decimated(f) if f > 1 else b).subset(idx).dose(th)
+        torch.testing.assert_close(got, (plain.decimated(f) if f > 1 else plain).subset(idx).dose(th), atol=0, rtol=0)
+    assert torch.equal(b.subset([1, 2]).decimated(2).dose(th), plain.subset([1, 2]).decimated(2).dose(th))
+    # a model with other field terms has other spectra: its own entries in the same cache
+    tilted = get_model(extend_params(default_params("eq1"), ["illumination_field"]).model)
+    c = FixedMasks(tilted, M, 24.0, cache=cache)
+    assert c.spectra.shape[0] != a.spectra.shape[0] and c.decimated(2).spectra.shape[0] != a.decimated(2).spectra.shape[0]
+
+
 def test_params_round_trip(tmp_path):
     p = default_params(pixel_size_um=2.96).with_values(c1=-0.07, c3=0.03, sigma_px=4.1, T=0.48)
     assert p.fixed == ("c0",) and "c0" not in p.free and p.values["c0"] == 1.0

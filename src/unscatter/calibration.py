@@ -82,6 +82,7 @@ from .model import (
     FixedMasks,
     Params,
     default_device,
+    keep_freed_memory,
     default_params,
     get_model,
     masks_to_tensor,
@@ -163,6 +164,7 @@ def calibrate(prints_dirs, out_dir, model: str = _D.model, seed: int = _D.seed, 
         raise ValueError(f"unknown objective {s['objective']!r}; known: {sorted(OBJECTIVES)}")
     inputs = [prints_dirs] if isinstance(prints_dirs, (str, Path)) else list(prints_dirs)
     before = torch.get_num_threads()
+    keep_freed_memory()  # the fits' temporaries (``model.keep_freed_memory``)
     with output_dir(out_dir, command="calibrate", inputs=inputs) as tmp:
         if s["threads"]:
             torch.set_num_threads(int(s["threads"]))

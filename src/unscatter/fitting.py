@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from . import metrics
-from .model import FixedMasks, Params
+from .model import FixedMasks, Params, keep_freed_memory
 
 log = logging.getLogger(__name__)
 
@@ -498,6 +498,7 @@ _REFITS: dict = {}
 
 def _refits_init(build, args: tuple) -> None:
     torch.set_num_threads(1)
+    keep_freed_memory()
     _REFITS.clear()
     _REFITS["refit"] = build(*args)
 
