@@ -215,6 +215,12 @@ def test_evaluators_sharing_a_cache_share_decimations_and_subsets_and_compute_th
         got = (b.decimated(f) if f > 1 else b).subset(idx).dose(th)
         torch.testing.assert_close(got, (plain.decimated(f) if f > 1 else plain).subset(idx).dose(th), atol=0, rtol=0)
     assert torch.equal(b.subset([1, 2]).decimated(2).dose(th), plain.subset([1, 2]).decimated(2).dose(th))
+    # full-resolution subsets (used once: predictions) are not kept, nor anything derived from them
+    kept = len(cache)
+    b.subset([0, 1]).decimated(2)
+    assert len(cache) == kept
+    # another padding is another grid: its own spectra
+    assert FixedMasks(m, M, 40.0, cache=cache).spectra.shape != a.spectra.shape and len(cache) == kept + 1
     # a model with other field terms has other spectra: its own entries in the same cache
     tilted = get_model(extend_params(default_params("eq1"), ["illumination_field"]).model)
     c = FixedMasks(tilted, M, 24.0, cache=cache)

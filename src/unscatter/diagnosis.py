@@ -103,6 +103,7 @@ from .model import (
     keep_freed_memory,
     load_params,
     masks_to_tensor,
+    padded_shape,
     params_path,
     save_params,
     split_model_name,
@@ -390,7 +391,8 @@ def _worker_init(data, s: dict) -> None:
     _WORKER.update(data=data, s=s, device=torch.device("cpu"), shared={}, round=None, ctx=(None, None))
 
 
-def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int, known: set, desc: str):
+def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int, known: set, desc: str,
+                private: bool = False):
     """One fit in a worker process: the values, the prediction of the ``test`` prints
     (None: none) and the seconds it took. ``key`` = (round, job index, job name): the
     folds of one job share a context, and a round's contexts share the masks' spectra
@@ -400,7 +402,8 @@ def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int,
     if w["round"] != key[0]:  # a round's spectra (the current model's, a candidate's field terms), dropped after it
         w["round"], w["shared"] = key[0], {}
     if w["ctx"][0] != key:
-        w["ctx"] = (key, _Context(params, w["data"], w["device"], w["s"], w["shared"], keep=True))
+        # a job that shares no spectra with the round's others (``_worker_folds``) keeps its own out of the round's cache
+        w["ctx"] = (key, _Context(params, w["data"], w["device"], w["s"], {} if private else w["shared"], keep=True))
     ctx = w["ctx"][1]
     t0 = time.perf_counter()
     v = ctx.fit(start, train, seed, w["s"], known, desc)
@@ -408,16 +411,27 @@ def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int,
 
 
 def _worker_folds(key: tuple, params: Params, folds: list, known: set) -> list:
-    """Several folds of one job in one worker, one after another (``_worker_fit``'s
-    results, in the order of ``folds``: (start, train, test, seed, desc) each)."""
-    return [_worker_fit(key, params, start, train, test, seed, known, desc) for start, train, test, seed, desc in folds]
+    """All folds of one job in one worker, one after another (``_worker_fit``'s results, in
+    the order of ``folds``: (start, train, test, seed, desc) each), for a job whose
+    spectra no other job of the round shares: they are built once, kept out of the
+    round's cache, and dropped with the evaluator after the last fold."""
+    try:
+        return [_worker_fit(key, params, start, train, test, seed, known, desc, private=True)
+                for start, train, test, seed, desc in folds]
+    finally:
+        _WORKER["ctx"] = (None, None)
 
 
-def _spectra_kind(params: Params) -> tuple:
-    """What a model's evaluator computes spectra of (``FixedMasks``): its field terms and
-    its dose response. Models of one kind share them (``_Context``'s cache)."""
+def _spectra_key(params: Params, shape: tuple) -> tuple | None:
+    """The key under which an evaluator of ``params`` on masks of ``shape`` (H, W) keeps its
+    spectra in ``_Context``'s cache (``FixedMasks``: its padded grid, field terms' basis
+    and dose response), or None where it keeps none (a dose response with parameters).
+    Evaluators of one key share the spectra and what derives from them."""
     model = get_model(params.model)
-    return tuple(type(ft).__name__ for ft in model.fields), model.response.name
+    if model.response.params:
+        return None
+    support = model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
+    return (padded_shape(shape, support, multiple=8), tuple(type(ft).__name__ for ft in model.fields), model.response.name)
 
 
 class _Fits:
@@ -445,14 +459,14 @@ class _Fits:
             self.pool.shutdown(cancel_futures=True)
             self.pool = None
 
-    def heldout(self, jobs: list, folds: list, rnd: int, bar=None) -> list:
+    def heldout(self, jobs: list, folds: list, rnd: int, bar=None, current: Params | None = None) -> list:
         """Each job's k-fold held-out predictions (``Heldout``), in the order of ``jobs``;
         ``rnd``: the diagnosis round (its jobs share the current model's spectra)."""
         if self.pool is not None:
             from concurrent.futures.process import BrokenProcessPool
 
             try:
-                return self._parallel(jobs, folds, rnd, bar)
+                return self._parallel(jobs, folds, rnd, bar, current)
             except BrokenProcessPool as exc:
                 log.warning("the diagnosis's worker processes stopped (%s); its fits go on in this process (a script "
                             "that runs the diagnosis with workers > 1 needs its top level under `if __name__ == "
@@ -464,18 +478,19 @@ class _Fits:
             out.append(_heldout(ctx, job.starts, folds, self.s, job.known, job.seed, job.desc, bar))
         return out
 
-    def _parallel(self, jobs: list, folds: list, rnd: int, bar) -> list:
+    def _parallel(self, jobs: list, folds: list, rnd: int, bar, current: Params | None = None) -> list:
         from concurrent.futures import as_completed
 
         B = len(self.data)
-        # a job whose model computes spectra of its own (other field terms, a dose response
-        # with parameters: illumination_field, dose_nonlinearity) shares none with the round's
-        # other jobs: its folds run as one task, so that one worker builds its evaluator (15 s
-        # and 2.3 GB for dose_nonlinearity on 32 prints of 512 x 512), not each; these tasks
-        # go first, as the longest
-        kinds = [_spectra_kind(job.params) for job in jobs]
-        common = max(kinds, key=kinds.count)  # the first of the most common: the same choice every run
-        alone = [j for j, k in enumerate(kinds) if k != common] if len(jobs) > 1 else []
+        # a job whose evaluator shares no spectra with the current model's (``current``: other
+        # field terms or padded grid, or a dose response with parameters, whose spectra are
+        # never kept) has its folds run as one task, so that one worker builds its spectra
+        # (15 s and 2.3 GB for dose_nonlinearity on 32 prints of 512 x 512), not each; these
+        # tasks go first, as the longest
+        shape = self.data.masks.shape[1:]
+        shared = None if current is None else _spectra_key(current, shape)
+        alone = [j for j, job in enumerate(jobs)
+                 if shared is None or _spectra_key(job.params, shape) != shared] if current is not None and len(jobs) > 1 else []
         if alone:
             log.info("the folds of %s run as one task each (their models compute spectra of their own)",
                      ", ".join(jobs[j].desc for j in alone))
@@ -1169,7 +1184,7 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
                 st.update({k: x for k, x in v.items() if k in st})
                 starts.append(st)
             jobs.append(_Job(p, starts, set(cur_params.free), seed + 1000 * rnd, f"+{c}"))
-        for c, job, ho in zip(remaining, jobs, fits.heldout(jobs, folds, rnd, bar)):
+        for c, job, ho in zip(remaining, jobs, fits.heldout(jobs, folds, rnd, bar, current=cur_params)):
             p = job.params
             stats = paired_bootstrap(cur.error, ho.error, s["bootstrap"], seed + rnd)
             per_print.append(errors_row(rnd, c, ho.error))

@@ -794,8 +794,10 @@ class FixedMasks:
         """Spectra derived from this evaluator's (``how``: the derivation), from the cache
         where an evaluator of the same masks and basis derived them before; the derived
         evaluator's key set accordingly by the caller (``_key``). The diagnosis builds
-        one evaluator per candidate and fold: the decimation and fold subset of the
-        shared spectra took 3 of a fit's 14 s, for the same numbers each time."""
+        an evaluator per candidate in each worker, and cuts its objectives to each fold:
+        with Eq. 1's 5 spectra of 32 masks on a 768 x 768 grid, the bands for every 4th
+        and every 2nd pixel and the fold subsets took 0.7 s per evaluator, for the same
+        numbers each time."""
         if self._cache is None:
             return compute()
         key = (*self._key, how)
@@ -820,7 +822,11 @@ class FixedMasks:
         new = object.__new__(FixedMasks)
         new.__dict__.update(self.__dict__)
         new.masks = self.masks[idx]
-        if self.spectra is not None:
+        if self.spectra is not None and self.f == 1:
+            # at full resolution (a prediction, or a stage that decimates after it) it is not
+            # kept: each is used once, and the full spectra are the largest
+            new.spectra, new._cache, new._key = self.spectra[:, idx].contiguous(), None, None
+        elif self.spectra is not None:
             new.spectra = self._derived(("subset", tuple(idx.tolist())), lambda: self.spectra[:, idx].contiguous())
             new._key = None if self._key is None else (*self._key, ("subset", tuple(idx.tolist())))
         return new
