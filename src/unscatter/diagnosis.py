@@ -103,7 +103,6 @@ from .model import (
     keep_freed_memory,
     load_params,
     masks_to_tensor,
-    padded_shape,
     params_path,
     save_params,
     split_model_name,
@@ -423,15 +422,10 @@ def _worker_folds(key: tuple, params: Params, folds: list, known: set) -> list:
 
 
 def _spectra_key(params: Params, shape: tuple) -> tuple | None:
-    """The key under which an evaluator of ``params`` on masks of ``shape`` (H, W) keeps its
-    spectra in ``_Context``'s cache (``FixedMasks``: its padded grid, field terms' basis
-    and dose response), or None where it keeps none (a dose response with parameters).
-    Evaluators of one key share the spectra and what derives from them."""
+    """``FixedMasks.spectra_key`` of ``_Context``'s evaluator of ``params`` (its support
+    over the bounds) on masks of ``shape`` (H, W)."""
     model = get_model(params.model)
-    if model.response.params:
-        return None
-    support = model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
-    return (padded_shape(shape, support, multiple=8), tuple(type(ft).__name__ for ft in model.fields), model.response.name)
+    return FixedMasks.spectra_key(model, shape, model.support_px({k: hi for k, (lo, hi) in params.bounds.items()}))
 
 
 class _Fits:
@@ -489,8 +483,9 @@ class _Fits:
         # tasks go first, as the longest
         shape = self.data.masks.shape[1:]
         shared = None if current is None else _spectra_key(current, shape)
-        alone = [j for j, job in enumerate(jobs)
-                 if shared is None or _spectra_key(job.params, shape) != shared] if current is not None and len(jobs) > 1 else []
+        alone = []
+        if current is not None and len(jobs) > 1:
+            alone = [j for j, job in enumerate(jobs) if shared is None or _spectra_key(job.params, shape) != shared]
         if alone:
             log.info("the folds of %s run as one task each (their models compute spectra of their own)",
                      ", ".join(jobs[j].desc for j in alone))
@@ -507,8 +502,8 @@ class _Fits:
             if j in alone:
                 continue
             for i, test in enumerate(folds):
-                start, train, test_, seed, desc = fold(job, i, test)
-                futures[self.pool.submit(_worker_fit, (rnd, j, job.desc), job.params, start, train, test_, seed, job.known,
+                start, train, test, seed, desc = fold(job, i, test)
+                futures[self.pool.submit(_worker_fit, (rnd, j, job.desc), job.params, start, train, test, seed, job.known,
                                          desc)] = (j, i)
         done = {}
         for fut in as_completed(futures):

@@ -741,7 +741,7 @@ class FixedMasks:
         if all(b is not None for b in bases) and (not model.response.params or expansion is not None):
             basis = {k: v for b in bases for k, v in b.items()}
             self.basis_names = list(basis)
-            key = (self.shape, tuple(basis), model.response.name)
+            key = self.spectra_key(model, (self.H, self.W), self.support_px)
             if expansion is None and cache is not None and key in cache:
                 self.spectra = cache[key]
             else:
@@ -758,6 +758,16 @@ class FixedMasks:
                     cache[key] = self.spectra
             if expansion is None and cache is not None:
                 self._cache, self._key = cache, key
+
+    @staticmethod
+    def spectra_key(model: PrinterModel, hw: tuple, support_px: float) -> tuple | None:
+        """The key under which an evaluator of ``model`` on masks of ``hw`` (H, W) with
+        ``support_px`` keeps its spectra in a shared cache (its padded grid, field terms and
+        dose response), or None where it keeps none (a dose response with parameters).
+        Evaluators of one key share the spectra and what derives from them."""
+        if model.response.params:
+            return None
+        return (padded_shape(hw, support_px, multiple=8), tuple(type(ft).__name__ for ft in model.fields), model.response.name)
 
     @property
     def fast(self) -> bool:
