@@ -1211,11 +1211,11 @@ def test_thin_lines_that_cured_in_an_eroding_batch_are_faint_not_empty(tmp_path)
     assert rows["cutoff_2"]["reason"].startswith("faint") and "eroded by" in rows["cutoff_2"]["reason"]
     for k in ("cutoff_0", "cutoff_1"):
         assert truth[k] == 0 and rows[k]["status"] == "empty"
-    # the trial prints are `ok`, but for at most one that fails as resting on the kernel's
-    # shape: the batch's scale is free (zoom per image), and counted with it free
-    # (pose.kernel_spread) trial_003, 0.29 px off, has a spread of 1.53 px against 1.5
+    # the trial prints are `ok`, but trial_003 may fail as resting on the kernel's shape:
+    # the batch's scale is free (zoom per image), and with the scale free in the kernel's
+    # step (pose.kernel_spread) it is 0.29 px off at a spread of 1.53 px against 1.5
     failed = [(j, r["status"], r["reason"]) for j in range(6) if (r := rows[f"trial_{j:03d}"])["status"] != "ok"]
-    assert len(failed) <= 1 and all(st == "failed" and "shape of the scatter kernel" in why for _, st, why in failed), failed
+    assert all(j == 3 and st == "failed" and "shape of the scatter kernel" in why for j, st, why in failed), failed
 
 
 def test_the_registration_marks_alone_place_a_print_whose_body_pulls_the_pose():

@@ -808,9 +808,9 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     For the kernel's tail share up by KERNEL_TAIL (``_kernel_changed``), the pose part
     of one Gauss-Newton step of the print's fit (``refine``'s objective without its Huber
     weights) from its template T to the changed template Tk, on T's window (``_window``):
-    the pose (its scale held only where the print's fit held it, ``Fit.scale_held``), gain,
-    offset and the print's nuisance
-    numbers (dose, blur, dose gradient, edge offsets, brightness slopes) with their
+    the pose (its scale held only where the print's fit held it, ``Fit.scale_held``),
+    gain, offset and the print's nuisance numbers (dose, blur, dose gradient, edge
+    offsets, brightness slopes) with their
     default priors (``_prior``; a print refitted with the batch's edge offsets had tighter
     ones, which would move its pose further: the move is then, if anything, low), the
     data weighed by the fit's gain over its residual's scale. Returns the
@@ -818,7 +818,9 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     grid in the image's units, NaN outside it), change -> k for the tail's change and
     the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the scale
     held only where the print's fit held it): the share of each change (1: all of it)
-    that the print's residual holds; None without an image.
+    that the print's residual holds; None without an image. The batch measures these
+    shares before its prints are refitted with a held scale (``scale_held`` still false
+    then), so with the scale free.
 
     A change of the kernel's shape moves an edge by how far its cure level sits from
     half the dose: an edge between full dose and nothing hardly moves, one at a grey
@@ -896,22 +898,17 @@ def kernel_spread(move: float, error: dict) -> float:
     failed a paper trial print 0.16 px off: the residual that a width change best
     explains there is a misfit of another shape, which does not move the pose.
 
-    The move includes the scale where nothing holds it (no batch magnification, no stated
-    pixel size: ``Fit.scale_held`` false). It was taken at the print's scale before (the
-    shift and the turn alone): a paper trial print of grey cells in a batch of free scale
-    has its scale follow a change of tail (2.7 to 5.4 px for a share 0.3 higher), and such
-    a print of a test batch of our own lab (an erosion of 5 um), 0.27 px off, failed on
-    it. But a Siemens star whose spokes do not cure to the centre has its scale set by
-    where they stop, which the kernel's shape sets: the star prints of our own lab's ci
-    benchmark batch (zoom per image) were `ok` with their scale 0.8 to 2.6 % small, 11 of
-    12 of them 1.7 to 5.4 px off, and random labs gave a star 3.2 px off and a partial
-    print 1.5 px off, `ok` at a kernel spread of 0.02 and 0.27 px at their scale, 2.5 and
-    4.4 px with it free. Counting the scale where it is free, of 16 prints silently wrong
-    (those, on 16 random labs and the ci batch) 9 fail; 4 more prints fail that were
-    within 1.5 px (0.29 to 0.88 px off), among them a trial print of that eroding test
-    batch, 0.29 px off, at a spread of 1.53 px (README, "The kernel's shape and a free
-    scale"). A print's scale resting on its features' sizes is ``size_spread``'s,
-    measured on the batch's sizes."""
+    The move includes the scale where the print's fit left it free (``Fit.scale_held``
+    false: no one magnification of the batch held it, and no stated pixel size, which
+    holds only some prints, ``stated_scales``). A Siemens star whose spokes do not cure
+    to its centre has its scale set by where they stop, which the kernel's shape sets:
+    with the scale held in the step, star prints 1.7 to 5.4 px off, their scale 0.8 to
+    2.6 % small, were `ok`, most at a spread of 0.02 px or less. The price is that a paper
+    trial print of grey cells, whose scale follows a change of tail (2.7 to 5.4 px for a
+    share 0.3 higher) without being off, may fail where its batch's prints hold much of
+    the change (README, "The kernel's shape and a free scale", measured). A print's
+    scale resting on its features' sizes is ``size_spread``'s, measured on the batch's
+    sizes."""
     return float(move * error["tail"]) if np.isfinite(move) else float("inf")  # inf x a share of 0 is no number
 
 
