@@ -95,11 +95,14 @@ def test_affine_mode_registers_as_well(lab_batch, tmp_path):
     # an affine pose has a scale along each axis: a print may have them from its features'
     # sizes and fail for that, for no other reason, where it is the faint print (one block
     # that prints) or where its pose is in fact well off (trial_006's is 1.48 px, at a size
-    # spread of 1.13 to 1.65 px as its grey features' edges count for more or less)
+    # spread of 1.13 to 1.65 px as its grey features' edges count for more or less); the
+    # faint print may instead fail on the kernel's shape, which with its scales free
+    # (pose.kernel_spread) moves it 0.44 px besides its size spread of 1.48 px (0.78 px off)
     truth_dir = lab_batch.with_name(lab_batch.name + ".truth")
     truth = {t["id"]: t for t in read_tsv(truth_dir / "transforms.tsv")}
     failed = [r for r in read_tsv(tmp_path / "reg" / "qc.tsv") if r["status"] == "failed"]
-    assert all("size of a feature" in r["reason"] for r in failed), failed
+    assert all("size of a feature" in r["reason"] or (r["id"] == "faint" and "shape of the scatter kernel" in r["reason"])
+               for r in failed), failed
     for r in failed:
         assert r["id"] == "faint" or transform_rms_px(_truth_matrix(r), _truth_matrix(truth[r["id"]]), 512) > 1.0, r
     rms, ious = _evaluate(tmp_path / "reg", truth_dir, may_fail=tuple(r["id"] for r in failed))
