@@ -192,7 +192,7 @@ class _Context:
         self.device = device
         self.data = data
         self.shared = shared
-        support = self.model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
+        support = _support_px(self.model, params)
         spectra = shared.setdefault("spectra", {})
         self.sim = FixedMasks(self.model, masks_to_tensor(data.masks, device), support_px=support,
                               cache=spectra if keep else dict(spectra))
@@ -421,11 +421,16 @@ def _worker_folds(key: tuple, params: Params, folds: list, known: set) -> list:
         _WORKER["ctx"] = (None, None)
 
 
+def _support_px(model, params: Params) -> float:
+    """The kernel support ``_Context``'s evaluator pads for: the widest kernel the bounds allow."""
+    return model.support_px({k: hi for k, (lo, hi) in params.bounds.items()})
+
+
 def _spectra_key(params: Params, shape: tuple) -> tuple | None:
-    """``FixedMasks.spectra_key`` of ``_Context``'s evaluator of ``params`` (its support
-    over the bounds) on masks of ``shape`` (H, W)."""
+    """``FixedMasks.spectra_key`` of ``_Context``'s evaluator of ``params`` on masks of
+    ``shape`` (H, W)."""
     model = get_model(params.model)
-    return FixedMasks.spectra_key(model, shape, model.support_px({k: hi for k, (lo, hi) in params.bounds.items()}))
+    return FixedMasks.spectra_key(model, shape, _support_px(model, params))
 
 
 class _Fits:

@@ -810,10 +810,10 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     weights) from its template T to the changed template Tk, on T's window (``_window``):
     the pose (its scale held only where the print's fit held it, ``Fit.scale_held``),
     gain, offset and the print's nuisance numbers (dose, blur, dose gradient, edge
-    offsets, brightness slopes) with their
-    default priors (``_prior``; a print refitted with the batch's edge offsets had tighter
-    ones, which would move its pose further: the move is then, if anything, low), the
-    data weighed by the fit's gain over its residual's scale. Returns the
+    offsets, brightness slopes) with their default priors (``_prior``; a print refitted
+    with the batch's edge offsets had tighter ones, which would move its pose further:
+    the move is then, if anything, low), the data weighed by the fit's gain over its
+    residual's scale. Returns the
     move (design px, RMS over the field) and, with ``image`` (the print's image on T's
     grid in the image's units, NaN outside it), change -> k for the tail's change and
     the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the scale
