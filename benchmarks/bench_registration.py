@@ -37,6 +37,16 @@ its seed included, so that everything not changed, noise too, is the same bit fo
 registers the new batch and lists, print by print, the verdicts and pose errors before
 and after: which of a lab's effects makes a print fail or go silently wrong.
 
+Two ``--labs`` runs of the same labs against each other (the same seed on another machine,
+or with another arithmetic, e.g. ``OPENBLAS_CORETYPE=Haswell``):
+
+    python benchmarks/bench_registration.py --against DIR_A DIR_B [--out DIR]
+
+lists the prints whose verdict differs, the distance between the two registrations of
+each print (mask px, RMS over the field), the silently wrong prints of each, and, per
+lab, how far the two batch templates' numbers lie apart. Writes ``against.tsv`` and
+``against.txt``.
+
 A print is *silently wrong* when registration reports it ``ok`` with a pose error above
 1.5 mask px, or ``empty`` although the lab's noise-free print has more than 0.05 % of
 the field solid (131 mask px, a dot of 13 px across; registration's own empty test
@@ -572,6 +582,67 @@ def reprint(a) -> None:
     print(f"\nwrote {out / 'summary.txt'}, {out / 'reg'}")
 
 
+def against(a) -> None:
+    """Two runs of the same labs compared print by print (``--against A B``)."""
+    dirs = [Path(d) for d in a.against]
+    runs = []
+    for d in dirs:
+        try:
+            runs.append(({(int(r["lab"]), r["id"]): r for r in read_tsv(d / "prints.tsv")}, read_yaml(d / "labs.yaml")))
+        except (InputError, OSError) as exc:
+            sys.exit(f"error: {d}: not the output of a --labs run ({exc})")
+    (ra, la), (rb, lb) = runs
+    if la.get("seed") != lb.get("seed") or set(ra) != set(rb):
+        sys.exit(f"error: {dirs[0]} and {dirs[1]} are not runs of the same labs (seeds {la.get('seed')} and "
+                 f"{lb.get('seed')}, {len(ra)} and {len(rb)} prints)")
+    qc = {}
+    for d in dirs:
+        for lab in sorted({k[0] for k in ra}):
+            for r in read_tsv(d / f"lab_{lab:02d}" / "reg" / "qc.tsv"):
+                qc[(d, lab, r["id"])] = r
+    rows, lines = [], []
+    for key in sorted(ra):
+        A, B = ra[key], rb[key]
+        Ma, Mb = (_matrix(qc.get((d, *key), {})) for d in dirs)
+        apart = transform_rms_px(Ma, Mb, 512) if Ma is not None and Mb is not None else float("nan")
+        rows.append(dict(lab=key[0], id=key[1], pattern=A["pattern"], status_a=A["status"], status_b=B["status"],
+                         rms_px_a=A["rms_px"], rms_px_b=B["rms_px"], silently_wrong_a=A["silently_wrong"],
+                         silently_wrong_b=B["silently_wrong"], apart_px=apart))
+    apart = np.array([r["apart_px"] for r in rows], float)
+    apart = apart[np.isfinite(apart)]
+    def wrong(r, k):
+        return str(r[f"silently_wrong_{k}"]) in ("1", "True")
+
+    flips = [r for r in rows if r["status_a"] != r["status_b"]]
+    silent = [[r for r in rows if wrong(r, k)] for k in "ab"]
+    lines.append(f"{len(rows)} prints of {len({r['lab'] for r in rows})} labs (seed {la.get('seed')}): A = {dirs[0]}, "
+                 f"B = {dirs[1]}")
+    lines.append(f"verdict differs: {len(flips)}; silently wrong: A {len(silent[0])}, B {len(silent[1])}")
+    if apart.size:
+        lines.append(f"registrations apart (mask px, RMS over the field): median {np.median(apart):.3f}, "
+                     f"90th percentile {np.percentile(apart, 90):.3f}, largest {apart.max():.3f}; "
+                     f"over 0.5 px: {int((apart > 0.5).sum())}, over 1.5 px: {int((apart > 1.5).sum())}")
+    for lab in sorted({r["lab"] for r in rows}):
+        ta, tb = (read_yaml(d / f"lab_{lab:02d}" / "reg" / "registration.yaml").get("print_template") or {} for d in dirs)
+        diff = sorted(((abs(float(ta[k]) - float(tb[k])), k) for k in ta if k in tb), reverse=True)[:4]
+        sub = [r["apart_px"] for r in rows if r["lab"] == lab and np.isfinite(r["apart_px"])]
+        lines.append(f"lab {lab}: prints apart median {_fmt(_median(sub))} px; template numbers that differ most: "
+                     + ", ".join(f"{k} {float(ta[k]):.3g} / {float(tb[k]):.3g}" for _, k in diff))
+    lines.append("prints whose verdict differs or that are silently wrong in either (lab, id, A, B, apart px):")
+    for r in rows:
+        if r["status_a"] != r["status_b"] or wrong(r, "a") or wrong(r, "b"):
+            def v(k):
+                return f"{r['status_' + k]} {_fmt(_float(r['rms_px_' + k]), '.2f')} px" + (" SILENTLY WRONG" if wrong(r, k) else "")
+            lines.append(f"  {r['lab']} {r['id']:<22} {v('a'):<30} {v('b'):<30} {_fmt(r['apart_px'], '.2f')}")
+    text = "\n".join(lines)
+    out = a.out or dirs[1]
+    out.mkdir(parents=True, exist_ok=True)
+    write_tsv(out / "against.tsv", rows, list(rows[0]))
+    (out / "against.txt").write_text(text + "\n")
+    print(text)
+    print(f"\nwrote {out / 'against.tsv'}, {out / 'against.txt'}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--count", type=int, default=32, help="trial masks (one lab)")
@@ -588,10 +659,14 @@ def main():
     ap.add_argument("--reprint", type=Path, help="a lab folder of a --labs run: print it again with --set changes")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="with --reprint: a change to the lab's config (dotted key, YAML value); repeatable")
+    ap.add_argument("--against", type=Path, nargs=2, metavar=("DIR_A", "DIR_B"),
+                    help="two --labs runs of the same labs (another machine or arithmetic): compared print by print")
     a = ap.parse_args()
     if a.set and not a.reprint:
         ap.error("--set needs --reprint")
-    if a.reprint:
+    if a.against:
+        against(a)
+    elif a.reprint:
         reprint(a)
     elif a.labs:
         random_labs(a)
