@@ -42,6 +42,12 @@ or with another arithmetic, e.g. ``OPENBLAS_CORETYPE=Haswell``):
 
     python benchmarks/bench_registration.py --against DIR_A DIR_B [--out DIR]
 
+With ``--perturb-template REL [--perturb-seed K]`` a ``--labs`` run moves the start of
+each of the batch template's fits by a relative amount drawn at REL (1e-9 moves it in
+its last bits, as another machine's arithmetic would): a probe, patched in here and not
+an option of the registration, that shows on one machine how far the template's fit,
+and the poses with it, rest on such bits. ``--against`` then compares it with a plain
+run of the same seed. The ``--against`` output
 lists the prints whose verdict differs, the distance between the two registrations of
 each print (mask px, RMS over the field), the silently wrong prints of each, and, per
 lab, how far the two batch templates' numbers lie apart. Writes ``against.tsv`` and
@@ -490,14 +496,32 @@ def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 24, t
     sheet.save(out_path)
 
 
+def perturb_template(rel: float, seed: int) -> None:
+    """``--perturb-template``: every fit of a batch's print template (``fit_template`` as
+    the registration calls it) starts from its numbers times 1 + ``rel`` N(0, 1), the
+    draws the same for every fit of a run (``seed``)."""
+    import unscatter.imaging.batch as batch
+
+    fit = batch.fit_template
+
+    def moved(tmpl, pairs, x, *args, **kw):
+        x = np.asarray(x, float)
+        return fit(tmpl, pairs, x * (1.0 + rel * np.random.default_rng(seed).standard_normal(x.shape)), *args, **kw)
+
+    batch.fit_template = moved
+
+
 def random_labs(a) -> None:
     seed = a.seed if a.seed is not None else int(np.random.SeedSequence().generate_state(1)[0])
+    if a.perturb_template:
+        perturb_template(a.perturb_template, a.perturb_seed)
     try:
         out = benchmark_output_dir(a.out or Path("benchmarks/out/registration_labs"), script="benchmarks/bench_registration.py")
     except InputError as exc:
         sys.exit(f"error: {exc}")
     cmd = (f"python benchmarks/bench_registration.py --labs {a.labs} --prints {a.prints} --seed {seed} --threads {a.threads}"
-           + (f" --masks {a.masks}" if a.masks != "test" else ""))
+           + (f" --masks {a.masks}" if a.masks != "test" else "")
+           + (f" --perturb-template {a.perturb_template:g} --perturb-seed {a.perturb_seed}" if a.perturb_template else ""))
     print(f"seed {seed} (repeat with: {cmd})", flush=True)
     logging.getLogger("unscatter.imaging").setLevel(logging.ERROR)  # failures are in the tables below
     labs, rows = [], []
@@ -659,9 +683,15 @@ def main():
     ap.add_argument("--reprint", type=Path, help="a lab folder of a --labs run: print it again with --set changes")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="with --reprint: a change to the lab's config (dotted key, YAML value); repeatable")
+    ap.add_argument("--perturb-template", type=float, default=0.0, metavar="REL",
+                    help="random labs: move the start of each template fit by this relative amount (a probe of how "
+                         "far the results rest on the arithmetic's last bits)")
+    ap.add_argument("--perturb-seed", type=int, default=1, help="with --perturb-template: the draw")
     ap.add_argument("--against", type=Path, nargs=2, metavar=("DIR_A", "DIR_B"),
                     help="two --labs runs of the same labs (another machine or arithmetic): compared print by print")
     a = ap.parse_args()
+    if a.perturb_template and not a.labs:
+        ap.error("--perturb-template needs --labs")
     if a.set and not a.reprint:
         ap.error("--set needs --reprint")
     if a.against:

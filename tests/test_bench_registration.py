@@ -55,6 +55,21 @@ def test_two_runs_of_the_same_labs_are_compared_print_by_print(tmp_path):
         bench.against(Namespace(against=[tmp_path / "a", tmp_path / "b"], out=tmp_path / "out"))
 
 
+def test_the_template_probe_moves_each_fits_start_alike(monkeypatch):
+    """``--perturb-template``: the registration's template fits start from their numbers
+    moved by about the relative amount asked, the same draw for each fit of a run."""
+    import unscatter.imaging.batch as batch
+
+    seen = []
+    monkeypatch.setattr(batch, "fit_template", lambda tmpl, pairs, x, *a, **kw: (seen.append(np.array(x)), (x, 0.0))[1])
+    _bench().perturb_template(1e-3, 5)
+    x = np.linspace(1.0, 20.0, 21)
+    for _ in range(2):
+        batch.fit_template(None, [], x, 600)
+    rel = seen[0] / x - 1.0
+    assert 1e-4 < np.std(rel) < 1e-2 and np.array_equal(seen[0], seen[1]), rel
+
+
 def test_the_summary_splits_labs_by_how_they_state_their_camera_offset():
     bench = _bench()
     labs = [dict(index=0, overrides={"microscope": {"declare_offset": True, "format": "tif16"}}),
