@@ -42,16 +42,17 @@ or with another arithmetic, e.g. ``OPENBLAS_CORETYPE=Haswell``):
 
     python benchmarks/bench_registration.py --against DIR_A DIR_B [--out DIR]
 
+lists the prints whose verdict differs, the distance between the two registrations of
+each print (mask px, RMS over the field), the silently wrong prints of each, and, per
+lab, the batch templates' numbers that differ most between the two (relative to the
+larger). Writes ``against.tsv`` and ``against.txt`` under ``--out`` (default DIR_B).
+
 With ``--perturb-template REL [--perturb-seed K]`` a ``--labs`` run moves the start of
 each of the batch template's fits by a relative amount drawn at REL (1e-9 moves it in
 its last bits, as another machine's arithmetic would): a probe, patched in here and not
 an option of the registration, that shows on one machine how far the template's fit,
 and the poses with it, rest on such bits. ``--against`` then compares it with a plain
-run of the same seed. The ``--against`` output
-lists the prints whose verdict differs, the distance between the two registrations of
-each print (mask px, RMS over the field), the silently wrong prints of each, and, per
-lab, how far the two batch templates' numbers lie apart. Writes ``against.tsv`` and
-``against.txt``.
+run of the same seed.
 
 A print is *silently wrong* when registration reports it ``ok`` with a pose error above
 1.5 mask px, or ``empty`` although the lab's noise-free print has more than 0.05 % of
@@ -634,6 +635,7 @@ def against(a) -> None:
                          silently_wrong_b=B["silently_wrong"], apart_px=apart))
     apart = np.array([r["apart_px"] for r in rows], float)
     apart = apart[np.isfinite(apart)]
+
     def wrong(r, k):
         return str(r[f"silently_wrong_{k}"]) in ("1", "True")
 
@@ -648,7 +650,8 @@ def against(a) -> None:
                      f"over 0.5 px: {int((apart > 0.5).sum())}, over 1.5 px: {int((apart > 1.5).sum())}")
     for lab in sorted({r["lab"] for r in rows}):
         ta, tb = (read_yaml(d / f"lab_{lab:02d}" / "reg" / "registration.yaml").get("print_template") or {} for d in dirs)
-        diff = sorted(((abs(float(ta[k]) - float(tb[k])), k) for k in ta if k in tb), reverse=True)[:4]
+        diff = sorted(((abs(float(ta[k]) - float(tb[k])) / max(abs(float(ta[k])), abs(float(tb[k])), 0.05), k)
+                       for k in ta if k in tb), reverse=True)[:4]
         sub = [r["apart_px"] for r in rows if r["lab"] == lab and np.isfinite(r["apart_px"])]
         lines.append(f"lab {lab}: prints apart median {_fmt(_median(sub))} px; template numbers that differ most: "
                      + ", ".join(f"{k} {float(ta[k]):.3g} / {float(tb[k]):.3g}" for _, k in diff))
