@@ -320,7 +320,7 @@ def test_a_stained_batch_fits_each_prints_brightness_slopes_with_its_pose(tmp_pa
     lamp hot spot kept or not) that the last bits of a sum can tip, and the prints' poses
     move with it. Registered with OpenBLAS's SkylakeX kernels (an AVX-512 machine's
     default), its Haswell kernels, and the template's start moved by 1e-9 of itself
-    (three draws; a probe, not in the code), the lab gave:
+    (the benchmark's probe ``--perturb-template 1e-9``, three draws), the lab gave:
 
     ===========  =====  ======  ==========================
     arithmetic   ok     median  silently wrong
