@@ -498,9 +498,10 @@ def worst_sheet(rows: list[dict], root: Path, out_path: Path, count: int = 24, t
 
 
 def perturb_template(rel: float, seed: int) -> None:
-    """``--perturb-template``: every fit of a batch's print template (``fit_template`` as
-    the registration calls it) starts from its numbers times 1 + ``rel`` N(0, 1), the
-    draws the same for every fit of a run (``seed``)."""
+    """``--perturb-template``: every fit of a batch's print template that the registration
+    calls (``unscatter.imaging.batch.fit_template``; the refits inside ``fit_hot_spot``
+    are not moved) starts from its numbers times 1 + ``rel`` N(0, 1), the draws the same
+    for every fit of a run (``seed``)."""
     import unscatter.imaging.batch as batch
 
     fit = batch.fit_template
@@ -620,19 +621,17 @@ def against(a) -> None:
     if la.get("seed") != lb.get("seed") or set(ra) != set(rb):
         sys.exit(f"error: {dirs[0]} and {dirs[1]} are not runs of the same labs (seeds {la.get('seed')} and "
                  f"{lb.get('seed')}, {len(ra)} and {len(rb)} prints)")
-    qc = {}
-    for d in dirs:
-        for lab in sorted({k[0] for k in ra}):
-            for r in read_tsv(d / f"lab_{lab:02d}" / "reg" / "qc.tsv"):
-                qc[(d, lab, r["id"])] = r
+    labs = sorted({k[0] for k in ra})
+    poses = [{(lab, r["id"]): _matrix(r) for lab in labs for r in read_tsv(d / f"lab_{lab:02d}" / "reg" / "qc.tsv")}
+             for d in dirs]  # the registered design->image matrices of each run (None: no pose)
     rows, lines = [], []
     for key in sorted(ra):
         A, B = ra[key], rb[key]
-        Ma, Mb = (_matrix(qc.get((d, *key), {})) for d in dirs)
-        apart = transform_rms_px(Ma, Mb, 512) if Ma is not None and Mb is not None else float("nan")
+        Ma, Mb = (p.get(key) for p in poses)
         rows.append(dict(lab=key[0], id=key[1], pattern=A["pattern"], status_a=A["status"], status_b=B["status"],
                          rms_px_a=A["rms_px"], rms_px_b=B["rms_px"], silently_wrong_a=A["silently_wrong"],
-                         silently_wrong_b=B["silently_wrong"], apart_px=apart))
+                         silently_wrong_b=B["silently_wrong"],
+                         apart_px=transform_rms_px(Ma, Mb, 512) if Ma is not None and Mb is not None else float("nan")))
     apart = np.array([r["apart_px"] for r in rows], float)
     apart = apart[np.isfinite(apart)]
 
