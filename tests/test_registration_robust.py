@@ -489,63 +489,11 @@ def test_a_grey_ramps_pose_rests_on_the_shape_of_the_kernel():
         fit = refine(img, M0, tmpl, B, x, iters=30, scale_prior=(0.0, 0.001))
         fit.scale_held = True
         moved[name] = pose_distance(fit.M, M0, n + 2 * MARGIN, MARGIN)
-        moves, shares = kernel_moves(tmpl, m, B, x, fit, "similarity", image=img)
-        spread[name], share[name] = moves["tail"], shares["tail"]
+        spread[name], shares = kernel_moves(tmpl, m, B, x, fit, "similarity", image=img)
+        share[name] = shares["tail"]
     assert moved["ramp"] > 1.5 and moved["block"] < 0.1, moved
     assert spread["ramp"] > max(1.0, 0.4 * moved["ramp"]) and spread["block"] < 0.1, (spread, moved)
     assert all(0.5 < v < 1.5 for v in share.values()), share
-
-
-def test_a_grey_ramps_pose_rests_on_the_dose_response():
-    """Masks printed by a printer whose dose is the grey level to the power 1.15 (a dose
-    gamma; the template's dose is linear in the grey level) and refitted with the
-    template, their scale free: a block under a grey ramp slides by over 0.5 px, and
-    ``kernel_moves`` predicts a move along the gamma of over 1 px (the step is linear and
-    its nuisance numbers have priors: it errs toward failing); a block of one grey level
-    neither moves nor is predicted to. The residual of a print of grey cells at four
-    levels measures the gamma (a share of it, with a small standard error); a block's
-    cannot (its dose takes the change up: its share's standard error is above
-    ``SHARE_SE_MAX``, and the batch does not count it, ``kernel_error``). A partial print
-    of a lab with a gamma of 1.14 was `ok` 4.6 px off (benchmark seed 454132426, lab 6)."""
-    import cv2
-
-    from unscatter.imaging.batch import MARGIN
-    from unscatter.imaging.pose import DOSE_GAMMA, SHARE_SE_MAX, kernel_error, kernel_moves, pose_distance, refine
-    from unscatter.imaging.template import PrintTemplate
-
-    n = 256
-    tmpl = PrintTemplate(n, MARGIN)
-    x = np.array(PrintTemplate.START, float)
-    x[0], x[1], x[8], x[10] = 6.0, 0.3, 0.0, 2.0
-    block = np.zeros((n, n), np.uint8)
-    block[60:190, 70:200] = 230
-    ramp = block.astype(float)
-    ramp[60:190] *= np.linspace(0.25, 1.0, 130)[:, None]
-    ramp = ramp.astype(np.uint8)
-    cells = np.zeros((n, n), np.uint8)
-    for i in range(4):
-        for j in range(4):
-            cells[30 + 50 * i : 70 + 50 * i, 30 + 50 * j : 70 + 50 * j] = (100, 150, 200, 255)[(i + j) % 4]
-    M0 = np.hstack([np.eye(2), np.zeros((2, 1))])
-    moved, move, share = {}, {}, {}
-    for gamma in (1.0, DOSE_GAMMA):
-        for name, mask in (("block", block), ("ramp", ramp), ("cells", cells)):
-            m = tmpl.padded(mask)
-            img = 0.1 + 0.8 * tmpl.cure(tmpl.exposure(m**gamma, x), x)
-            img = cv2.GaussianBlur(img + np.random.default_rng(0).normal(0, 0.02, img.shape).astype(np.float32), (0, 0), 1.0)
-            B = tmpl.exposure(m, x)
-            fit = refine(img, M0, tmpl, B, x, iters=30)
-            moved[name, gamma] = pose_distance(fit.M, M0, n + 2 * MARGIN, MARGIN)
-            move[name, gamma], share[name, gamma] = kernel_moves(tmpl, m, B, x, fit, "similarity", image=img)
-    g = DOSE_GAMMA
-    assert moved["ramp", g] > 0.5 and moved["block", g] < 0.1 and moved["ramp", 1.0] < 0.1, moved
-    assert move["ramp", g]["gamma"] > max(1.0, moved["ramp", g]) and move["block", g]["gamma"] < 0.1, move
-    assert share["cells", g]["gamma"] > 0.2 and share["cells", g]["gamma_se"] < SHARE_SE_MAX, share
-    assert abs(share["cells", 1.0]["gamma"]) < 0.05, share
-    assert share["block", g]["gamma_se"] > SHARE_SE_MAX, share
-    # a batch of such blocks does not measure its gamma: it is assumed
-    off, _ = kernel_error([share["block", g]] * 5 + [share["block", 1.0]] * 5, 4)
-    assert off["gamma"] == 0.5 and off["tail"] < 0.2, off
 
 
 def test_batch_range_bounds_the_poses_of_a_batch():

@@ -18,11 +18,11 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (DOSE_GAMMA, KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
+from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD)
-from .template import GAMMA_STARTS, PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
+from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
 
@@ -834,14 +834,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         reg = cv2.warpAffine(smooth[mid], M, tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         return quarter.padded(masks[mid]), cv2.resize(reg, quarter.shape[::-1], interpolation=cv2.INTER_AREA), 1.0
 
-    def fit_batch_template(poses: dict, x, max_evals: int = 600, hot_spot: bool = True, gamma_starts: tuple = (1.0,)):
-        """The template fitted on the prints of ``poses`` (id -> pose) from ``x`` (its gamma
-        from each of ``gamma_starts`` times ``x``'s, ``fit_template``): its numbers, its mean
-        NCC, the (mask, image, dose) it was fitted on, and the prints it was fitted on and
-        left out (registration.yaml)."""
+    def fit_batch_template(poses: dict, x, max_evals: int = 600, hot_spot: bool = True):
+        """The template fitted on the prints of ``poses`` (id -> pose) from ``x``: its numbers,
+        its mean NCC, the (mask, image, dose) it was fitted on, and the prints it was fitted
+        on and left out (registration.yaml)."""
         ids_ = list(poses)
         pairs = list(pool.map(lambda mid: pair(mid, poses[mid]), ids_))
-        x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, gamma_starts=gamma_starts)
+        x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
         kept = well_fitted(quarter, pairs, x)
         if len(kept) < len(pairs):  # fitted again without the prints it cannot explain (a pose off)
             pairs = kept
@@ -858,8 +857,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     template_prints = dict(fitted=list(fit_ids), left_out=[])  # registration.yaml: the prints the template was fitted on
     # (and where it was fitted again at the chosen poses, ``first``: those of the first template)
     if fit_ids:
-        x, _, _, template_prints = fit_batch_template({mid: starts[mid][0][0] for mid in fit_ids}, x,
-                                                      gamma_starts=GAMMA_STARTS)
+        x, _, _, template_prints = fit_batch_template({mid: starts[mid][0][0] for mid in fit_ids}, x)
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     def counted(mid) -> tuple:
         """The scales within which a pose counts (``choose_pose``): the searched range;
@@ -1078,9 +1076,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     kernel_off, kernel_prints = kernel_error(list(pool.map(kernel_share, placed_ids)), s.size_min_prints)
     log.info("scatter kernel's shape: off by %.2f of a tail share of %.2f (and %.2f of a width change of %.0f %%, not "
-             "counted); dose response off by %.2f of a gamma of %.2f; from %d prints whose features place their pose%s",
-             kernel_off["tail"], KERNEL_TAIL, kernel_off["wider"], 100 * (KERNEL_WIDTH - 1), kernel_off["gamma"], DOSE_GAMMA,
-             kernel_prints,
+             "counted) from %d prints whose features place their pose%s", kernel_off["tail"], KERNEL_TAIL,
+             kernel_off["wider"], 100 * (KERNEL_WIDTH - 1), kernel_prints,
              "" if kernel_prints >= s.size_min_prints else ": too few to measure it, assumed")
     one_scale = batch_scale(placed, s)
     held_scale = None if one_scale is None else one_magnification_held(one_scale, len(placed), s)
@@ -1398,13 +1395,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
         elif not np.hypot(ch.fit.size_sd, ch.fit.model_sd) <= s.max_size_sd:
-            reasons.append(f"pose not determined by the print: it rests on the shape of the scatter kernel and the dose's "
-                           f"response to the grey level, which the batch's template knows only roughly (an edge on a grey "
-                           f"ramp or at a dose near the cure threshold, with no edge opposite it that moves alike): the fit "
-                           f"moves it by {min(ch.fit.model_sd, 1e6):.2f} px with the kernel's tail share off by "
-                           f"{KERNEL_TAIL * kernel_off['tail']:.2f} and the dose's gamma by a factor "
-                           f"{DOSE_GAMMA ** kernel_off['gamma']:.2f}, as far as the "
-                           f"batch's prints show them off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
+            reasons.append(f"pose not determined by the print: it rests on the shape of the scatter kernel, which the batch's "
+                           f"template knows only roughly (an edge on a grey ramp or at a dose near the cure threshold, with "
+                           f"no edge opposite it that moves alike): the fit moves it by {min(ch.fit.model_sd, 1e6):.2f} px "
+                           f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
+                           f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
@@ -1457,8 +1452,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    edge_places=edge_places, feature_sizes=feature_sizes,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
-                                                                     width_counted=False, gamma=kernel_off["gamma"],
-                                                                     gamma_change=DOSE_GAMMA, prints=kernel_prints),
+                                                                     width_counted=False, prints=kernel_prints),
                                                    stain=dict(prints=len(stains), sigma_px=s.stain_sigma_px, min_sd=s.stain_min_sd,
                                                               template_refitted=stain_refit),
                                                    stated_scatter=scatter))

@@ -797,32 +797,15 @@ def _kernel_changed(x, which: str) -> np.ndarray:
     return xk
 
 
-DOSE_GAMMA = 1.15  # kernel_moves: the dose response's change, the template's gamma times this
-KERNEL_CHANGES = ("tail", "wider", "gamma")  # measured (``kernel_moves``' shares); "wider" not counted
-COUNTED_CHANGES = ("tail", "gamma")  # kernel_spread
-
-
-def _changed_exposure(tmpl: PrintTemplate, m: np.ndarray, x, which: str) -> tuple[np.ndarray, np.ndarray]:
-    """The scattered dose and template numbers of a change of the template's model
-    (``KERNEL_CHANGES``): the kernel's shape (``_kernel_changed``), or the dose's response to
-    the grey level (``gamma``: the template's gamma times DOSE_GAMMA, ``PrintTemplate.graded``;
-    a mask of one grey level does not change)."""
-    if which == "gamma":
-        xk = np.r_[np.asarray(x, float), PrintTemplate.START[len(x):]]
-        xk[PrintTemplate.GAMMA] *= DOSE_GAMMA
-        return tmpl.exposure(m, xk), xk
-    xk = _kernel_changed(x, which)
-    return tmpl.exposure(m, xk), xk
+KERNEL_CHANGES = ("tail", "wider")
 
 
 def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit, mode: str,
                  image: np.ndarray | None = None, band: int = 16) -> tuple[float, dict | None]:
-    """How far a print's pose moves with the tail of the batch's scatter kernel and with
-    the dose's response to the grey level, and, given the print's ``image``, how far its
-    image says the template is off in each.
+    """How far a print's pose moves with the tail of the batch's scatter kernel, and,
+    given the print's ``image``, how far its image says the kernel is off in shape.
 
-    For each of COUNTED_CHANGES (``_changed_exposure``: the kernel's tail share up by
-    KERNEL_TAIL; the template's gamma times DOSE_GAMMA), the pose part
+    For the kernel's tail share up by KERNEL_TAIL (``_kernel_changed``), the pose part
     of one Gauss-Newton step of the print's fit (``refine``'s objective without its Huber
     weights) from its template T to the changed template Tk, on T's window (``_window``):
     the pose (its scale held only where the print's fit held it, ``Fit.scale_held``),
@@ -830,10 +813,10 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     offsets, brightness slopes) with their default priors (``_prior``; a print refitted
     with the batch's edge offsets had tighter ones, which would move its pose further:
     the move is then, if anything, low), the data weighed by the fit's gain over its
-    residual's scale. Returns change -> the
+    residual's scale. Returns the
     move (design px, RMS over the field) and, with ``image`` (the print's image on T's
-    grid in the image's units, NaN outside it), change -> k for the tail's change, the
-    core's (KERNEL_WIDTH wider) and the gamma's, fitted together with the same numbers (the scale
+    grid in the image's units, NaN outside it), change -> k for the tail's change and
+    the core's (KERNEL_WIDTH wider), fitted together with the same numbers (the scale
     held only where the print's fit held it): the share of each change (1: all of it)
     that the print's residual holds; None without an image. The batch measures these
     shares before its prints are refitted with a held scale (``scale_held`` still false
@@ -847,22 +830,12 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     it does not (a grey ramp, whose cut the dose places: the pose along the ramp rests on
     the ramp's bright end alone), the pose moves with the kernel. Without the priors the
     step is ill-posed: on a grey ramp the pose along the ramp trades against the dose and
-    the edge offsets, and which way it goes rests on them.
-
-    A dose gamma changes the dose of each grey level by its own factor; where a print
-    holds one grey level its dose takes the change up, but along a grey ramp the image's
-    polymer density changes in shape (from the gel point up) and the fit moves the pose
-    to follow it. Measured on a lab with a gamma of 1.14 and a gel dose of 0.57 of its
-    cure threshold (registration benchmark, seed 454132426, lab 6): a partial print under
-    a diagonal ramp was `ok` 4.63 px off, and 1.53 px off printed again with no gamma
-    (``bench_registration.py --reprint``). A synthetic print of the same ramp through the
-    template's own cure (``tests/test_registration_robust.py``) moves far less: the step
-    is only as good as the template's cure is like the lab's."""
+    the edge offsets, and which way it goes rests on them."""
     q = fit.q
     T, d = print_template(tmpl, B, x, q, derivatives=True)
     top = float(T.max())
     if top <= 0 or not fit.sigma > 0:
-        return {k: float("inf") for k in COUNTED_CHANGES}, None
+        return float("inf"), None
     n = T.shape[0]
     c = (n - 1) / 2
     corners = np.array([[-c, -c], [c, -c], [-c, c], [c, c]]).T
@@ -880,9 +853,9 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
     columns = [-fit.gain * (gx * ux + gy * uy) for ux, uy in moves] + [Tw, np.ones_like(Tw)]
     columns += [fit.gain * v[win].astype(np.float64) for v in d]
     changed = {}
-    for which in KERNEL_CHANGES if image is not None else COUNTED_CHANGES:
-        Bk, xk = _changed_exposure(tmpl, m, x, which)
-        changed[which] = fit.gain * (print_template(tmpl, Bk, xk, q, derivatives=False)[0][win] - Tw)
+    for which in KERNEL_CHANGES if image is not None else ("tail",):
+        xk = _kernel_changed(x, which)
+        changed[which] = fit.gain * (print_template(tmpl, tmpl.exposure(m, xk), xk, q, derivatives=False)[0][win] - Tw)
     _, qs = _prior(x)
     nq = min(len(d), len(qs))
 
@@ -902,31 +875,24 @@ def kernel_moves(tmpl: PrintTemplate, m: np.ndarray, B: np.ndarray, x, fit: Fit,
         return A, H, norm
 
     A, H, norm = solved(columns, fit.scale_held)  # the scale free unless the print's fit held it (kernel_spread)
-    out = {}
-    for which in COUNTED_CHANGES:
-        z = np.linalg.solve(H, A.T @ changed[which].ravel() / fit.sigma) / norm
-        out[which] = _field_rms(np.outer(z[:npose], z[:npose]), mode, corners)
+    z = np.linalg.solve(H, A.T @ changed["tail"].ravel() / fit.sigma) / norm
+    out = _field_rms(np.outer(z[:npose], z[:npose]), mode, corners)
     if image is None:
         return out, None
     seen = image[win].astype(np.float64)
     valid = np.isfinite(seen)
-    nk = len(KERNEL_CHANGES)
-    if valid.sum() < len(columns) + nk:
+    if valid.sum() < len(columns) + 2:
         return out, None
-    A, H, norm = solved(columns + [changed[k] for k in KERNEL_CHANGES], fit.scale_held, valid)
+    A, H, norm = solved(columns + [changed["tail"], changed["wider"]], fit.scale_held, valid)
     r = (seen - fit.gain * Tw - fit.offset)[valid] / fit.sigma
-    Hi = np.linalg.inv(H)
-    z = Hi @ (A.T @ r) / norm
-    se = np.sqrt(np.diag(Hi)) / norm  # each share's standard error for pixels of independent unit noise
-    return out, {**{k: float(z[-nk + i]) for i, k in enumerate(KERNEL_CHANGES)},
-                 **{f"{k}_se": float(se[-nk + i]) for i, k in enumerate(KERNEL_CHANGES)}}
+    z = np.linalg.solve(H, A.T @ r) / norm
+    return out, {k: float(z[-2 + i]) for i, k in enumerate(KERNEL_CHANGES)}
 
 
-def kernel_spread(move: dict, error: dict) -> float:
-    """A print's pose spread from the kernel's shape and the dose response (design px): its
-    move with the tail and with the gamma (``kernel_moves``), each times the share of that
-    change by which the batch's template is off (``kernel_error``), in quadrature. The
-    core's width is measured but not counted: the edges' profiles
+def kernel_spread(move: float, error: dict) -> float:
+    """A print's pose spread from the kernel's shape (design px): its move with the tail
+    (``kernel_moves``) times the share of that change by which the batch's kernel is off
+    (``kernel_error``). The core's width is measured but not counted: the edges' profiles
     fix it, and in a batch of our own lab whose prints were all within 0.5 px of the truth
     its share measured 1.34 (a core 27 % too narrow, consistent over 5 prints), which
     failed a paper trial print 0.16 px off: the residual that a width change best
@@ -943,12 +909,10 @@ def kernel_spread(move: dict, error: dict) -> float:
     the change (README, "The kernel's shape and a free scale", measured). A print's
     scale resting on its features' sizes is ``size_spread``'s, measured on the batch's
     sizes."""
-    parts = [move[k] * error[k] for k in COUNTED_CHANGES]
-    return float(np.hypot(*parts)) if all(np.isfinite(move[k]) for k in COUNTED_CHANGES) else float("inf")  # inf x 0 is no number
+    return float(move * error["tail"]) if np.isfinite(move) else float("inf")  # inf x a share of 0 is no number
 
 
 KERNEL_UNMEASURED = 0.5  # kernel_error: the share assumed where too few prints measure it
-SHARE_SE_MAX = 0.1  # kernel_error: a print's share counts where its standard error is at most this
 
 
 def kernel_error(shares: list, min_prints: int, cap: float = 3.0) -> tuple[dict, int]:
@@ -959,18 +923,11 @@ def kernel_error(shares: list, min_prints: int, cap: float = 3.0) -> tuple[dict,
     they agree (it errs toward failing), at most ``cap``. With fewer than ``min_prints``
     prints, KERNEL_UNMEASURED: assumed, as a small batch's size error is (``Settings.size_sd``),
     between our own lab's shares (under 0.25) and those of a lab whose template lacks
-    most of its tail (0.6 to 0.9). A print measures a change only where its share's standard
-    error (``kernel_moves``' k_se) is at most SHARE_SE_MAX: on a print of one grey level a
-    gamma is a change of its dose, which its fit takes up, and the share is then any number
-    (seen: 1.5 and 12 on a synthetic block, and a batch of blocks and gratings measured
-    its gamma off by the cap). Returns (change -> share, prints that measure the tail)."""
+    most of its tail (0.6 to 0.9). Returns (change -> share, prints)."""
     rows = [s for s in shares if s is not None and all(np.isfinite(v) for v in s.values())]
-    out = {}
-    for k in KERNEL_CHANGES:
-        ks = [r[k] for r in rows if r.get(f"{k}_se", 0.0) <= SHARE_SE_MAX]
-        out[k] = (float(min(np.sqrt(np.median(np.square(ks)) / 0.455), cap)) if len(ks) >= max(min_prints, 1)
-                  else KERNEL_UNMEASURED)
-    return out, sum(r.get("tail_se", 0.0) <= SHARE_SE_MAX for r in rows)
+    if len(rows) < max(min_prints, 1):
+        return {k: KERNEL_UNMEASURED for k in KERNEL_CHANGES}, len(rows)
+    return {k: float(min(np.sqrt(np.median([r[k] ** 2 for r in rows]) / 0.455), cap)) for k in KERNEL_CHANGES}, len(rows)
 
 
 FEATURE_MIN_EDGE = 40  # feature_places: boundary pixels a feature needs for its place to count
