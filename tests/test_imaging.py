@@ -50,53 +50,26 @@ def test_registration_accuracy_over_the_microscope_range(tmp_path, trial_dir, ca
     assert ious.mean() >= 0.97, ious
 
 
+@pytest.mark.xfail(strict=True, reason="The print template's dose is linear in the grey level: a printer with a dose "
+                   "gamma leaves paper trial prints `ok` 1.7 to 3.1 px off (README, 'The dose response')")
 def test_a_printer_whose_dose_is_not_linear_in_the_grey_level_is_registered(tmp_path, trial_dir):
     """Our own lab's nine trial prints at the large end of the microscope's range, printed
     with a dose gamma of 1.15 (the dose of a grey level g is g^1.15; the randomized labs
-    draw 0.9 to 1.15). A template whose dose is linear in the grey level left three of
-    them `ok` 1.7, 2.5 and 3.1 px off (and one 1.0 px), mispredicting their grey parts
-    against their bright ones, and QC did not see it. The template now fits the batch's
-    gamma (``PrintTemplate.graded``, searched from three starts and kept where it predicts
-    prints it was not fitted to, ``fit_template``): no print is `ok` more than 1.5 px off,
-    and the gamma is the lab's within 0.07. Printed at a gamma of 1, the same batch holds
-    its gamma at 1."""
-    for lab_gamma in (1.15, 1.0):
-        batch, reg = tmp_path / f"batch_{lab_gamma}", tmp_path / f"reg_{lab_gamma}"
-        overrides = {"microscope": EXTREMES["large"], "printer": {"dose_gamma": lab_gamma}}
-        print_batch(trial_dir, batch, overrides=overrides, seed=3, progress=False)
-        register_batch(batch, reg, progress=False, skip_failed=True)
-        qc = {r["id"]: r for r in read_tsv(reg / "qc.tsv")}
-        truth = {t["id"]: t for t in read_tsv(tmp_path / f"batch_{lab_gamma}.truth" / "transforms.tsv")}
-        err = {i: transform_rms_px(_truth_matrix(qc[i]), _truth_matrix(truth[i]), 512) for i in qc if qc[i]["status"] == "ok"}
-        assert len(err) >= 8 and max(err.values()) <= 1.5, (lab_gamma, err)
-        gamma = read_yaml(reg / "registration.yaml")["print_template"]["gamma"]
-        assert abs(gamma - lab_gamma) <= 0.07 if lab_gamma != 1.0 else gamma == 1.0, (lab_gamma, gamma)
-
-
-def test_the_templates_gamma_grades_a_masks_grey_levels_against_its_brightest():
-    """``PrintTemplate.graded``: g (g / g_max)^(gamma - 1). A mask of one grey level is
-    unchanged at any gamma (its print's own dose takes up the rest of a gamma), the dimmer
-    of two levels gets g^gamma of the brighter's dose, nothing stays nothing, and numbers
-    recorded before the gamma (20 of them) leave the mask as it is."""
-    from unscatter.imaging.template import PrintTemplate
-
-    tmpl = PrintTemplate(64, 8)
-    x = np.array(PrintTemplate.START, float)
-    x[PrintTemplate.GAMMA] = 1.2
-    one = np.zeros((64, 64), np.uint8)
-    one[10:40, 10:40] = 180
-    m = tmpl.padded(one)
-    assert np.array_equal(tmpl.graded(m, x), m)
-    two = one.copy()
-    two[40:60, 10:40] = 90
-    m = tmpl.padded(two)
-    g = tmpl.graded(m, x)
-    assert np.isclose(g.max(), m.max()) and np.all(np.isfinite(g)) and not g[m == 0].any()
-    dim = (m > 0.3) & (m < 0.4)
-    assert np.allclose(g[dim], m[dim] * 0.5**0.2, rtol=1e-5)
-    assert tmpl.graded(m, x[:20]) is m
-    x[PrintTemplate.GAMMA] = 0.8  # below 1: no grey is still no dose
-    assert np.all(np.isfinite(tmpl.graded(m, x))) and not tmpl.graded(m, x)[m == 0].any()
+    draw 0.9 to 1.15). The template, whose dose is linear in the grey level, leaves three
+    of them `ok` 1.7, 2.5 and 3.1 px off (and one 1.0 px), and QC does not see it: it
+    mispredicts their grey parts against their bright ones. The same images registered
+    with the masks graded by the lab's gamma (255 (g / 255)^1.15) are all within 0.4 px,
+    and a template that fits the gamma (df967dd, 566cad5; not kept, README "The dose
+    response") registered them all within 0.4 px, failing one (1.25 px off), fitting a
+    gamma of 1.12. Expected to fail until the template's dose response is fitted robustly."""
+    batch = tmp_path / "batch"
+    overrides = {"microscope": EXTREMES["large"], "printer": {"dose_gamma": 1.15}}
+    print_batch(trial_dir, batch, overrides=overrides, seed=3, progress=False)
+    register_batch(batch, tmp_path / "reg", progress=False, skip_failed=True)
+    qc = {r["id"]: r for r in read_tsv(tmp_path / "reg" / "qc.tsv")}
+    truth = {t["id"]: t for t in read_tsv(tmp_path / "batch.truth" / "transforms.tsv")}
+    err = {i: transform_rms_px(_truth_matrix(qc[i]), _truth_matrix(truth[i]), 512) for i in qc if qc[i]["status"] == "ok"}
+    assert len(err) >= 8 and max(err.values()) <= 1.5, err
 
 
 def test_round_trip_empty_and_faint_prints(lab_batch, tmp_path):

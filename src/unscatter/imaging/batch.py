@@ -22,7 +22,7 @@ from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidate
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD)
-from .template import GAMMA_STARTS, PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
+from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
 
@@ -834,21 +834,17 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         reg = cv2.warpAffine(smooth[mid], M, tshape[::-1], flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
         return quarter.padded(masks[mid]), cv2.resize(reg, quarter.shape[::-1], interpolation=cv2.INTER_AREA), 1.0
 
-    def fit_batch_template(poses: dict, x, max_evals: int = 600, hot_spot: bool = True, first: bool = False):
+    def fit_batch_template(poses: dict, x, max_evals: int = 600, hot_spot: bool = True):
         """The template fitted on the prints of ``poses`` (id -> pose) from ``x``: its numbers,
         its mean NCC, the (mask, image, dose) it was fitted on, and the prints it was fitted
-        on and left out (registration.yaml). The batch's ``first`` fit searches the dose's
-        gamma from GAMMA_STARTS and keeps it only where it predicts prints it was not fitted
-        on (``fit_template``); later fits hold a gamma of 1 at 1."""
+        on and left out (registration.yaml)."""
         ids_ = list(poses)
         pairs = list(pool.map(lambda mid: pair(mid, poses[mid]), ids_))
-        gamma = first or float(x[PrintTemplate.GAMMA]) != 1.0
-        starts = GAMMA_STARTS if first else (1.0,)
-        x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, gamma_starts=starts, gamma=gamma)
+        x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
         kept = well_fitted(quarter, pairs, x)
         if len(kept) < len(pairs):  # fitted again without the prints it cannot explain (a pose off)
             pairs = kept
-            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, gamma=float(x[PrintTemplate.GAMMA]) != 1.0)
+            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
         used = dict(fitted=[m for m, p in zip(ids_, pairs) if any(p is k for k in kept)],
                     left_out=[m for m, p in zip(ids_, pairs) if not any(p is k for k in kept)])
         if hot_spot:
@@ -861,7 +857,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     template_prints = dict(fitted=list(fit_ids), left_out=[])  # registration.yaml: the prints the template was fitted on
     # (and where it was fitted again at the chosen poses, ``first``: those of the first template)
     if fit_ids:
-        x, _, _, template_prints = fit_batch_template({mid: starts[mid][0][0] for mid in fit_ids}, x, first=True)
+        x, _, _, template_prints = fit_batch_template({mid: starts[mid][0][0] for mid in fit_ids}, x)
     # 5. every print's pose: refined hypotheses and the moves under which it maps onto itself
     def counted(mid) -> tuple:
         """The scales within which a pose counts (``choose_pose``): the searched range;

@@ -6,8 +6,7 @@ larger or smaller than their mask all differ from the mask, and a pose fitted to
 template of the wrong size trades the size error for scale and shift (1 to 6 px over
 the field in our measurements). The print template predicts which parts of a mask cure:
 
-    graded     g = m (m / max m)^(gamma - 1)
-    exposure   E = g (1 + fx X + fy Y + fxx X^2 + fxy X Y + fyy Y^2
+    exposure   E = m (1 + fx X + fy Y + fxx X^2 + fxy X Y + fyy Y^2
                       + hot exp(-((X - hot_x)^2 + (Y - hot_y)^2) / (2 hot_width^2)))
     scattered  B = (1 - tail) G_Sigma * E + tail G_tail_sigma * E
     core       Sigma = sigma^2 R(a) diag(e^L, e^-L) R(a)^T,  (aniso_c, aniso_s) = L (cos 2a, sin 2a)
@@ -23,9 +22,7 @@ pose toward it. Anisotropic scattering (an elliptical core, of axes sigma e^(L/2
 and sigma e^(-L/2) across, the area of the round one) grows each feature more along one
 direction than across it; a round core cannot follow that, and the pose and scale of a
 print then trade against it (1.5 to 2 px off in labs with a 1.4- to 1.7-fold ratio). Its
-two numbers are the batch's, fitted with the others, as is the gamma: a printer's dose
-need not be linear in the grey level, and a template that assumes it is mispredicts a
-mask's grey parts against its bright ones. This is a registration nuisance
+two numbers are the batch's, fitted with the others. This is a registration nuisance
 model, not the calibrated printer model: it only has to put the print's edges where the
 image has them.
 """
@@ -91,23 +88,22 @@ class PrintTemplate:
     """The print template on the padded design grid, optionally subsampled by ``factor``."""
 
     NAMES = ("sigma", "gel", "k", "fx", "fy", "fxx", "fxy", "fyy", "tail", "tail_sigma", "blur", "haze", "haze_sigma",
-             "hot", "hot_x", "hot_y", "hot_width", "aniso_c", "aniso_s", "stain_slope", "gamma")
-    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35, 0.0, 0.0, 0.0, 1.0)
+             "hot", "hot_x", "hot_y", "hot_width", "aniso_c", "aniso_s", "stain_slope")
+    START = (4.0, 0.3, 0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.1, 15.0, 1.0, 0.05, 30.0, 0.0, 0.0, 0.0, 0.35, 0.0, 0.0, 0.0)
     # stain_slope: not a number of the cure, but of the batch's images: where the batch
     # stains unevenly, the prior sd of each print's own brightness slopes across the field
     # (``pose.print_template``), 0 where it does not
     # the numbers Powell fits (``fit_template``), and the scales it works on (a unit step is a
     # sensible first move for each); the hot spot's numbers are fitted by ``fit_hot_spot``
-    FREE = (*range(13), 17, 18, 20)
-    SCATTER = (0, 3, 4, 5, 6, 7, 8, 9, 13, 14, 15, 16, 17, 18, 20)  # the numbers the scattered dose depends on
-    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5, 0.03, 10.0, 0.1, 0.1, 0.05)
+    FREE = (*range(13), 17, 18)
+    SCATTER = (0, 3, 4, 5, 6, 7, 8, 9, 13, 14, 15, 16, 17, 18)  # the numbers the scattered dose depends on
+    STEP = (1.0, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 0.05, 5.0, 0.5, 0.03, 10.0, 0.1, 0.1)
     # and the bounds the numbers are clipped to: beyond them the model clips (a tail share
     # above 0.9, a haze above 0.5) and the cost is flat, or a wide core hides under a narrow
     # tail (seen: sigma 55 px, tail share 62, its width 8 px). Clipped, not Powell's bounds,
     # with which the fit on our own lab's prints stopped short (poses 1.2 px off)
     BOUNDS = ((0.3, 25.0), (0.0, 1.5), (0.01, 3.0), *((-1.0, 1.0),) * 5, (0.0, 0.9), (2.0, 100.0), (0.3, 20.0), (0.0, 0.5),
-              (2.0, 200.0), (-1.2, 1.2), (-1.2, 1.2), (0.5, 2.0))
-    GAMMA = 20  # the dose's response to the grey level (``graded``)
+              (2.0, 200.0), (-1.2, 1.2), (-1.2, 1.2))
     ANISO_MAX = 1.2  # |L| at most: a ratio of sigma_major / sigma_minor of e^1.2 = 3.3
     # hot, hot_x, hot_y, hot_width: a brighter spot (a darker one, or one centred outside the
     # design field or wider than 0.8 of it, is a smooth field: the quadratic's)
@@ -129,27 +125,7 @@ class PrintTemplate:
 
     def exposure(self, m: np.ndarray, x) -> np.ndarray:
         """The scattered dose B (before the cure), for a padded mask ``m``."""
-        return self.scatter(self.graded(m, x) * self.field(x), x)
-
-    def graded(self, m: np.ndarray, x) -> np.ndarray:
-        """The dose of each grey level of a padded mask ``m``: g (g / g_max)^(gamma - 1),
-        g_max the mask's brightest grey. A printer's dose need not be linear in the grey
-        level (a gamma), and a template that assumes it is mispredicts the grey parts of a
-        mask against its bright ones: our own lab printing at a gamma of 1.15 had three of
-        nine paper trial prints `ok` 1.7 to 3.2 px off. Relative to the brightest grey,
-        since each print's dose is its own (``pose.refine``): the rest of a gamma is a
-        change of that dose, and a mask of one grey level does not change at all. 1 for
-        numbers recorded before the gamma (20 of them)."""
-        gamma = float(x[self.GAMMA]) if len(x) > self.GAMMA else 1.0
-        if gamma == 1.0:
-            return m
-        m = np.clip(m, 0.0, None)
-        top = float(m.max())
-        if top <= 0:
-            return m
-        g = float(np.clip(gamma, *self.BOUNDS[self.FREE.index(self.GAMMA)]))
-        r = np.divide(m, np.float32(top), out=np.ones_like(m), where=m > 0)  # 0^(g - 1) of no grey: no dose
-        return (m * np.power(r, np.float32(g - 1.0))).astype(np.float32)
+        return self.scatter(m * self.field(x), x)
 
     def field(self, x) -> np.ndarray:
         """The lamp's field: the quadratic and, where the batch has one, the hot spot."""
@@ -295,11 +271,8 @@ TRIM = 3.0  # a print whose misfit beyond noise is this many times the median pr
 MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
 
 
-GAMMA_STARTS = (1.0, 1.15, 1 / 1.15)  # fit_template: the gamma's starts, relative to the one it is given
-
-
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None,
-                 anisotropy: bool = True, gamma_starts: tuple = (1.0,), gamma: bool = False) -> tuple[np.ndarray, float]:
+                 anisotropy: bool = True) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
 
     ``pairs``: (padded mask, image warped into padded design coordinates, the print's
@@ -323,31 +296,10 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     batches; 1.1e-4 to 4.1e-3 for real ones (ratios 1.5 to 1.7). The gain on the prints
     fitted is no guide: Powell's third of the budget leaves it noisy (-7e-4 on one real
     ellipse that gained 4.1e-3 on the others). With fewer than 6 prints the core is round.
-
-    The dose's gamma (``PrintTemplate.graded``) trades against the kernel's width and the
-    cure's gel point and rate: on nine paper trial prints of our own lab printed at a
-    gamma of 1.15, Powell from a gamma of 1 stopped at 0.99 (mean NCC 0.99567), from 1.15
-    at 1.12 (0.99611), the poses of the second template within 0.4 px of the truth where
-    the first left three prints `ok` 1.7 to 3.1 px off. So, with ``gamma`` (else the
-    gamma is held at ``x0``'s), the first search runs from each of ``gamma_starts`` (the
-    given gamma times each) and the best fit is kept; given more than one start (the
-    registration passes ``GAMMA_STARTS``, 1, 1.15 and 1 / 1.15, to the batch's first
-    fit), the gamma found is kept only where it predicts the prints it was not fitted to
-    (``_gamma_kept``), and is otherwise held at 1. Later fits of the batch fit it from the
-    gamma kept, or hold it at 1.
     """
     x0 = np.r_[np.asarray(x0, float), PrintTemplate.START[len(x0):]]  # numbers recorded before the last were added
-    G = PrintTemplate.GAMMA
-    free = [i for i in PrintTemplate.FREE if (anisotropy or i not in (17, 18)) and (gamma or i != G)]  # hot spot held
-    x, fit = None, -np.inf
-    for g in gamma_starts if gamma else (1.0,):  # the gamma trades against the kernel and the cure: Powell
-        start = x0.copy()  # from one start stays near it
-        start[G] = float(np.clip(x0[G] * g, *PrintTemplate.BOUNDS[-1]))
-        xg, fg = _powell(tmpl, pairs, start, free, max_evals, pool)
-        if fg > fit:
-            x, fit = xg, fg
-    if gamma and len(gamma_starts) > 1 and x[G] != 1.0:  # the batch's first fit: is the gamma the prints'?
-        x, fit = _gamma_kept(tmpl, pairs, x, fit, [i for i in free if i != G], max_evals, pool)
+    free = [i for i in PrintTemplate.FREE if anisotropy or i < 17]  # the hot spot's numbers are held
+    x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool)
     if not anisotropy or not np.any(x[17:19] != 0):
         return x, fit
     round_ = x.copy()
@@ -355,7 +307,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     some, rest = pairs[::2], pairs[1::2]
     if len(rest) < 3:
         return round_, mean_ncc(tmpl, pairs, round_)
-    round_free = [i for i in free if i not in (17, 18)]
+    round_free = [i for i in free if i < 17]
     x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool)
     x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool)
     gains = (f_e - f_r, mean_ncc(tmpl, rest, x_e) - mean_ncc(tmpl, rest, x_r))
@@ -363,36 +315,6 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     log.info("print template: anisotropy %.3f, %.3f (ratio %.2f) gains mean NCC %.2g on the prints it was fitted to, "
              "%.2g on the others: %s", x[17], x[18], np.exp(np.hypot(x[17], x[18])), *gains, "kept" if kept else "round")
     return (x, fit) if kept else (round_, mean_ncc(tmpl, pairs, round_))
-
-
-GAMMA_GAIN = 5e-5  # _gamma_kept: the mean NCC a gamma must gain on the prints it was not fitted to
-
-
-def _gamma_kept(tmpl: PrintTemplate, pairs: list, x: np.ndarray, fit: float, fixed_free: list, max_evals: int,
-                pool) -> tuple[np.ndarray, float]:
-    """The template ``x`` with its fitted gamma, or with a gamma of 1 refitted, whichever
-    predicts the prints it was not fitted to: as ``fit_template`` tries the ellipse, the
-    template is fitted with the gamma free and held at 1 on every other print (a third of
-    ``max_evals`` each), and the gamma is kept only if it fits the others better by
-    GAMMA_GAIN; with fewer than 6 prints it is held at 1. A gamma fitted freely takes up
-    what else the template has wrong (on 16 random labs it was the lab's in 6 and off by
-    0.09 to 0.47 in the others; README, "The dose response")."""
-    G = PrintTemplate.GAMMA
-    some, rest = pairs[::2], pairs[1::2]
-    flat = x.copy()
-    flat[G] = 1.0
-    if len(rest) < 3:
-        x1, f1 = _powell(tmpl, pairs, flat, fixed_free, max_evals // 3, pool)
-        return x1, f1
-    x_g, _ = _powell(tmpl, some, x, fixed_free + [G], max_evals // 3, pool)
-    x_1, _ = _powell(tmpl, some, flat, fixed_free, max_evals // 3, pool)
-    gain = mean_ncc(tmpl, rest, x_g) - mean_ncc(tmpl, rest, x_1)
-    kept = gain >= GAMMA_GAIN
-    log.info("print template: gamma %.3f gains mean NCC %.2g on the prints it was not fitted to: %s", x[G], gain,
-             "kept" if kept else "held at 1")
-    if kept:
-        return x, fit
-    return _powell(tmpl, pairs, flat, fixed_free, max_evals // 3, pool)
 
 
 def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool) -> tuple[np.ndarray, float]:
@@ -495,7 +417,6 @@ class FieldFit:
         terms = (X, Y, X * X, X * Y, Y * Y)  # the field's quadratic terms (PrintTemplate.field), fx to fyy
         self.prints = []
         for m, reg, _ in pairs:
-            m = tmpl.graded(m, self.x)
             ok = np.isfinite(reg)
             v = reg[ok] - reg[ok].mean()
             v = (v / np.sqrt((v * v).sum() + 1e-24)).astype(np.float32)
