@@ -15,14 +15,19 @@ def _truth_matrix(row):
     return np.array([[float(row[f"m{a}{b}"]) for b in range(3)] for a in range(2)])
 
 
+def _ok_pose_errors(reg_dir, truth_dir) -> dict:
+    """id -> pose error (mask px, RMS over the field) of each `ok` print against the lab's truth."""
+    qc = {r["id"]: r for r in read_tsv(reg_dir / "qc.tsv")}
+    return {t["id"]: transform_rms_px(_truth_matrix(qc[t["id"]]), _truth_matrix(t), 512)
+            for t in read_tsv(truth_dir / "transforms.tsv") if qc[t["id"]]["status"] == "ok"}
+
+
 def _evaluate(reg_dir, truth_dir, may_fail=()):
     qc = {r["id"]: r for r in read_tsv(reg_dir / "qc.tsv")}
-    rms, ious = [], []
+    rms, ious = list(_ok_pose_errors(reg_dir, truth_dir).values()), []
     for t in read_tsv(truth_dir / "transforms.tsv"):
         q = qc[t["id"]]
         truth = read_print(truth_dir / "prints" / f"{t['id']}.png")
-        if q["status"] == "ok":
-            rms.append(transform_rms_px(_truth_matrix(q), _truth_matrix(t), 512))
         if truth.any() and not (t["id"] in may_fail and q["status"] == "failed"):
             assert q["status"] == "ok", f"{t['id']}: {q['status']} {q['reason']}"
             ious.append(iou(read_print(reg_dir / f"{t['id']}.png"), truth))
@@ -68,10 +73,7 @@ def test_a_printer_whose_dose_is_not_linear_in_the_grey_level_is_registered(tmp_
     overrides = {"microscope": EXTREMES["large"], "printer": {"dose_gamma": 1.15}}
     print_batch(trial_dir, batch, overrides=overrides, seed=3, progress=False)
     register_batch(batch, tmp_path / "reg", progress=False, skip_failed=True)
-    qc = {r["id"]: r for r in read_tsv(tmp_path / "reg" / "qc.tsv")}
-    truth = {t["id"]: t for t in read_tsv(tmp_path / "batch.truth" / "transforms.tsv")}
-    err = {i: transform_rms_px(_truth_matrix(qc[i]), _truth_matrix(truth[i]), 512)
-           for i in qc if qc[i]["status"] == "ok"}
+    err = _ok_pose_errors(tmp_path / "reg", tmp_path / "batch.truth")
     assert len(err) >= 8 and max(err.values()) <= 1.5, err
 
 
