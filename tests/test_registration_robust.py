@@ -606,6 +606,42 @@ def test_a_feature_that_barely_or_does_not_print_fixes_no_scale():
     assert size_spread(clear, "similarity", 0.2, image=shown) == pytest.approx(alone, rel=0.05)
     assert size_spread(clear, "similarity", 0.2, image=clear) < 0.5 * alone
 
+
+def test_a_feature_that_printed_smaller_than_predicted_still_fixes_the_scale():
+    """A block and a dot far from it, in a lab that erodes: the image shows the dot with
+    less than half of its predicted area above the level (a dot of seed 454132426's lab
+    7, which left a ring and a dot's print undetermined), but its middle: the two
+    features' places fix the scale. A line of which the image shows one end only (it
+    printed in part) does not count."""
+    from unscatter.imaging.batch import MARGIN
+    from unscatter.imaging.pose import seen_shares, size_spread
+
+    def blurred(m):
+        return np.pad(cv2_blur(m.astype(np.float32), 2.0), MARGIN)
+
+    yy, xx = np.mgrid[:512, :512]
+    block = np.zeros((512, 512), np.float32)
+    block[300:420, 100:420] = 1.0
+    dot = ((yy - 100) ** 2 + (xx - 420) ** 2 <= 9**2).astype(np.float32)
+    T_block, T = blurred(block), blurred(block) + blurred(dot)
+    alone = size_spread(T_block, "similarity", 0.2)
+    small = blurred(block) + blurred(((yy - 100) ** 2 + (xx - 420) ** 2 <= 5.5**2).astype(np.float32))
+    lvl = 0.5 * float(T.max())
+    lab, count = ndimage.label(T >= lvl)
+    shares = seen_shares(lab, count, small >= lvl)
+    whole = ndimage.mean(small >= lvl, lab, np.arange(1, count + 1))
+    assert min(whole) < 0.5 and min(shares) > 0.9  # less than half its area seen, all of its middle
+    both = size_spread(T, "similarity", 0.2, image=T)
+    assert both < 0.7 * alone
+    assert size_spread(T, "similarity", 0.2, image=small) == pytest.approx(both, rel=1e-6)
+    line = np.zeros((512, 512), np.float32)
+    line[120:126, 60:460] = 1.0
+    T_line = T_block + blurred(line)
+    part = line.copy()
+    part[:, 200:] = 0.0  # a third of the line printed
+    assert size_spread(T_line, "similarity", 0.2, image=T_block + blurred(part)) == pytest.approx(alone, rel=0.05)
+    assert size_spread(T_line, "similarity", 0.2, image=T_line) < 0.7 * alone
+
 def test_a_line_that_barely_cured_is_placed_only_as_well_as_the_dose_is_known():
     """A lone line in a batch of prints that cured well above the gel point: where the line
     did too, a change of dose moves its edges as far as the batch's, and its spread is as

@@ -1390,7 +1390,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                         f"their stated sizes by {100 * scatter['spread']:.2f} %, more than their own spreads say, and its "
                         f"template misplaces their edges by {misfit:.2f} px")
             reasons.append(f"pose not determined by the print: {how}")
-        if not ch.fit.size_sd <= s.max_size_sd:
+        if not ch.fit.size_sd <= s.max_size_sd and ch.fit.scale_held and held_scale is not None:
+            reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its turn or "
+                           f"shift still rests on the sizes of its features more than on where they lie (few, small or close "
+                           f"together; a ring turns freely); uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than "
+                           f"{s.max_size_sd})")
+        elif not ch.fit.size_sd <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
                            f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
                            f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
