@@ -55,26 +55,22 @@ def test_registration_accuracy_over_the_microscope_range(tmp_path, trial_dir, ca
     assert ious.mean() >= 0.97, ious
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="The print template's dose is linear in the grey level: a printer with a dose gamma leaves "
-                   "paper trial prints `ok` 1.7 to 3.2 px off (README, 'The dose response')")
 def test_a_printer_whose_dose_is_not_linear_in_the_grey_level_is_registered(tmp_path, trial_dir):
-    """Our own lab's nine trial prints at the large end of the microscope's range, printed
-    with a dose gamma of 1.15 (the dose of a grey level g, 0 to 255, is (g / 255)^1.15;
-    the randomized labs draw 0.9 to 1.15). The template, whose dose is linear in the grey
-    level, mispredicts their grey parts against their bright ones and leaves three of them
-    `ok` 1.7, 2.5 and 3.2 px off (and one 1.0 px); QC does not see it. The same images
-    registered with the masks graded by the lab's gamma (255 (g / 255)^1.15): the eight
-    `ok` ones within 0.4 px (one failed). A template that fits the gamma (df967dd,
-    566cad5; not kept, README "The dose response") registered the other eight within 0.4
-    px and failed one (1.25 px off), fitting a gamma of 1.12. Expected to fail until the
-    template's dose response is fitted robustly."""
+    """Our own lab's nine trial prints at the large end of the microscope's range (a zoom
+    of 1.22 to 1.25 set per image), printed with a dose gamma of 1.15 (the dose of a grey
+    level g, 0 to 255, is (g / 255)^1.15; the randomized labs draw 0.9 to 1.15). Seven
+    of them fix their own scale, and by chance five of those agree within 0.2 %: the
+    batch took that for one magnification and held every print to it, and three prints
+    were `ok` 1.7, 2.5 and 3.2 px off, QC blind to it (``batch_scale``: two of the seven
+    are 0.78 and 1.20 % off their median, which no refocusing does). Every `ok` print
+    within 1 px, no one magnification held (0.37 px at most when measured, one failed)."""
     batch = tmp_path / "batch"
     overrides = {"microscope": EXTREMES["large"], "printer": {"dose_gamma": 1.15}}
     print_batch(trial_dir, batch, overrides=overrides, seed=3, progress=False)
     register_batch(batch, tmp_path / "reg", progress=False, skip_failed=True)
+    assert read_yaml(tmp_path / "reg" / "registration.yaml")["one_magnification"] is None
     err = _ok_pose_errors(tmp_path / "reg", tmp_path / "batch.truth")
-    assert len(err) >= 8 and max(err.values()) <= 1.5, err
+    assert len(err) >= 8 and max(err.values()) <= 1.0, err
 
 
 def test_round_trip_empty_and_faint_prints(lab_batch, tmp_path):
