@@ -106,6 +106,9 @@ def test_the_summary_counts_failed_prints_by_the_kind_of_their_reasons():
             dict(status="failed", rms_px=3.0, truth_solid=0.1, reason="ambiguous: the mask maps onto itself rotated by 12 deg"),
             dict(status="failed", truth_solid=0.0, reason="faint: its brightest polymer reaches 80 %"),
             dict(status="failed", truth_solid=0.002, reason="faint: its brightest polymer reaches 99 %"),
+            dict(status="failed", rms_px=0.3, truth_solid=0.1,
+                 reason="pose not determined by the print: its scale held to the batch's one magnification, its turn or "
+                        "shift still rests on the sizes of its features"),
             dict(status="ok", rms_px=0.2, truth_solid=0.1, reason="")]
     lines = bench.reason_lines(rows)
 
@@ -114,6 +117,7 @@ def test_the_summary_counts_failed_prints_by_the_kind_of_their_reasons():
 
     assert counts("mask's symmetry") == (2, 1, 1, 0)
     assert counts("feature's size") == (1, 1, 0, 0)
+    assert counts("scale held") == (1, 1, 0, 0)
     faint = next(x for x in lines if x.strip().startswith("faint"))
     assert "2:   0 /   0 /   2" in faint and "printed 1 of them" in faint
     assert not any("pose uncertain" in x for x in lines)

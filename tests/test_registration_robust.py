@@ -642,6 +642,7 @@ def test_a_feature_that_printed_smaller_than_predicted_still_fixes_the_scale():
     assert size_spread(T_line, "similarity", 0.2, image=T_block + blurred(part)) == pytest.approx(alone, rel=0.05)
     assert size_spread(T_line, "similarity", 0.2, image=T_line) < 0.7 * alone
 
+
 def test_a_line_that_barely_cured_is_placed_only_as_well_as_the_dose_is_known():
     """A lone line in a batch of prints that cured well above the gel point: where the line
     did too, a change of dose moves its edges as far as the batch's, and its spread is as
@@ -925,6 +926,10 @@ def test_batch_scale_is_one_magnification_only_when_the_prints_agree():
     assert batch_scale(fits(clustered), s) is None
     refocused = 0.81 * np.exp(np.array([-0.005, 0.232, 0.005, 0.094, -0.016, -0.475]) / 100)
     assert batch_scale(fits(refocused), s) is not None
+    tight = np.zeros(8)
+    for off, one in ((0.7, True), (0.9, False)):  # one print that far off (%) the median of the others
+        tight[-1] = off
+        assert (batch_scale(fits(1.1 * np.exp(tight / 100)), s) is not None) == one
     assert batch_scale(fits([1.1] * (s.scale_min_prints - 1)), s) is None
 
 

@@ -321,17 +321,25 @@ def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     print's measurement error), not of the median: it is what a further print's scale may
     be off by. It is robust, and a few prints of a zoom set per image may agree by chance:
     seven prints of our own lab at a zoom of 1.22 to 1.25 per image gave a spread of 0.23
-    %, two of them 0.78 and 1.20 % off, and held to their median, three prints were `ok`
-    1.7 to 3.1 px off. So one print as far off as no refocusing moves a scale is enough
-    to say that the magnification was set per image: in the random labs of one objective
-    the prints were at most 0.48 % off their median (0.09 to 0.48 % in five labs), in
-    those of a zoom 1.6 % or more (README, "One magnification").
+    %, one of them 1.20 % off (and one 0.78 %), and held to their median, three prints
+    were `ok` 1.7 to 3.2 px off. So one print as far off as no refocusing moves a scale is
+    enough to say that the magnification was set per image: in the random labs of one
+    objective the prints were at most 0.48 % off their median (0.09 to 0.48 % in five
+    labs), in those of a zoom at least 3.7 % (README, "One magnification by chance"). A
+    print whose template pulls its scale off by more than 0.8 % then costs the batch its
+    one magnification: prints that needed it fail rather than pass at a wrong scale.
     """
     if len(fits) < s.scale_min_prints:
         return None
     scales = [log_scale(f.M) for f in fits]
     centre, spread = median_sd(scales)
-    if spread > s.fixed_scale_sd or float(np.max(np.abs(np.asarray(scales) - centre))) > s.one_scale_within:
+    if spread > s.fixed_scale_sd:
+        return None
+    off = float(np.max(np.abs(np.asarray(scales) - centre)))
+    if off > s.one_scale_within:
+        log.info("no one magnification: %d prints whose features fix their scale agree within %.2f %% (robust spread), "
+                 "but one is %.2f %% off their median (more than %.2f %%)", len(scales), 100 * spread, 100 * off,
+                 100 * s.one_scale_within)
         return None
     return centre, max(spread, s.min_scale_sd)
 
@@ -1117,6 +1125,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                  f"leave to the prints' scales: each print whose features fix its scale is weighed against its stated "
                  f"size, known within {100 * held_stated:.2f} %" if held_stated else "")
     weighed = set()  # prints whose scale is weighed against their stated size (stated_scatter)
+    stated_held = set()  # prints refitted held to their stated size (where the batch has one magnification: in its place)
 
     def spreads_of(*args, **kw) -> tuple[float, float]:
         """``size_spread`` with the features' own places (``Fit.size_sd``) and without them
@@ -1234,6 +1243,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 log.info("%s: held to its stated camera pixel size: pose spread %.2f -> %.2f px, size spread %.2f -> %.2f px",
                          mid, f.pose_sd, g.pose_sd, f.size_sd, g.size_sd)
                 f = g
+                stated_held.add(mid)
         return f
 
     for mid, f in zip(todo, pool.map(held, todo)):
@@ -1399,7 +1409,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                         f"their stated sizes by {100 * scatter['spread']:.2f} %, more than their own spreads say, and its "
                         f"template misplaces their edges by {misfit:.2f} px")
             reasons.append(f"pose not determined by the print: {how}")
-        if not ch.fit.size_sd <= s.max_size_sd and ch.fit.scale_held and held_scale is not None:
+        if not ch.fit.size_sd <= s.max_size_sd and held_scale is not None and mid not in stated_held:
             reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its turn or "
                            f"shift still rests on the sizes of its features more than on where they lie (few, small or close "
                            f"together; a ring turns freely); uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than "

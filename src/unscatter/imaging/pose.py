@@ -605,6 +605,7 @@ EDGE_CORR_PX = 16.0
 WEAK_EDGE = 0.25  # boundary pixels with less than this share of the median slope do not count
 MARGINAL_PEAK = 1.2  # a predicted feature whose peak is below this times the level (60 % of the print's) does not count
 SEEN_SHARE = 0.5  # a predicted feature of whose core less than this share is above the level in the image does not count
+SEEN_AREA = 0.25  # ... nor one of which less than this share (of all its pixels) is (a block whose joined lines did not print)
 
 
 def edge_misfit(img: np.ndarray, T: np.ndarray, fit: "Fit") -> float:
@@ -699,8 +700,8 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     times the level (a thin line at the edge of curing, predicted as specks along a
     ridge) may print anywhere along it or not at all; with ``image`` (the print's image on
     ``T``'s grid in ``T``'s units, the fit's gain and offset taken out; NaN outside the
-    image) one of whose core (``seen_shares``) less than SEEN_SHARE is above the level in
-    the image did not print as predicted. Their edges are left out. Counted, they made a print that is one
+    image) one of whose core (``seen_shares``) less than SEEN_SHARE, or of whose pixels
+    less than SEEN_AREA, is above the level in the image did not print as predicted. Their edges are left out. Counted, they made a print that is one
     block and such a line count as several features whose places fix its scale, while
     the block's size set it (a lines print of seed 1443771177's lab 5, `ok` 2.4 px off
     with a size spread of 1.0 px: 26 predicted specks along its second line).
@@ -751,7 +752,10 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     good = np.bincount(lab[T >= MARGINAL_PEAK * lvl], minlength=count + 1)[1:] > 0
     if image is not None:
         with np.errstate(invalid="ignore"):
-            good &= seen_shares(lab, count, image >= lvl) >= SEEN_SHARE
+            above = image >= lvl
+        area = np.bincount(lab.ravel(), weights=above.ravel().astype(np.float64), minlength=count + 1)[1:]
+        area /= np.maximum(np.bincount(lab.ravel(), minlength=count + 1)[1:], 1)
+        good &= (seen_shares(lab, count, above) >= SEEN_SHARE) & (area >= SEEN_AREA)
     keep = np.concatenate([[False], good])[k]
     if keep.sum() < 10:
         return float("inf")
