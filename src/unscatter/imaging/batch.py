@@ -1409,15 +1409,16 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                         f"their stated sizes by {100 * scatter['spread']:.2f} %, more than their own spreads say, and its "
                         f"template misplaces their edges by {misfit:.2f} px")
             reasons.append(f"pose not determined by the print: {how}")
-        if not ch.fit.size_sd <= s.max_size_sd and held_scale is not None and mid not in stated_held:
-            reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its turn or "
-                           f"shift still rests on the sizes of its features more than on where they lie (few, small or close "
-                           f"together; a ring turns freely); uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than "
-                           f"{s.max_size_sd})")
-        elif not ch.fit.size_sd <= s.max_size_sd:
-            reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a grating "
-                           f"printed as one) more than on where its features lie; uncertain by {min(ch.fit.size_sd, 1e6):.2f} px "
-                           f"(more than {s.max_size_sd}){stated_note or no_size_note(mid)}")
+        if not ch.fit.size_sd <= s.max_size_sd:
+            by = f"uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than {s.max_size_sd})"
+            if held_scale is not None and mid not in stated_held:
+                reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its "
+                               f"turn or shift still rests on the sizes of its features more than on where they lie (few, "
+                               f"small or close together; a ring turns freely); {by}")
+            else:
+                reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a "
+                               f"grating printed as one) more than on where its features lie; "
+                               f"{by}{stated_note or no_size_note(mid)}")
         elif not np.hypot(ch.fit.size_sd, ch.fit.model_sd) <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: it rests on the shape of the scatter kernel, which the batch's "
                            f"template knows only roughly (an edge on a grey ramp or at a dose near the cure threshold, with "

@@ -656,13 +656,19 @@ def seen_shares(lab: np.ndarray, count: int, above: np.ndarray) -> np.ndarray:
     erodes, 0.48 of its predicted area seen in seed 454132426's lab 7, which left a ring
     and a dot's print with its turn undetermined) still shows its core; a line that
     printed in pieces, or not at all, does not."""
-    dist = cv2.distanceTransform((lab > 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    far = np.zeros(count + 1, np.float32)
     inside = lab > 0
+    dist = cv2.distanceTransform(inside.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    far = np.zeros(count + 1, np.float32)
     np.maximum.at(far, lab[inside], dist[inside])
-    core = np.where(inside & (dist >= 0.5 * far[lab]), lab, 0).ravel()
-    hits = np.bincount(core, weights=above.ravel().astype(np.float64), minlength=count + 1)[1:]
-    return hits / np.maximum(np.bincount(core, minlength=count + 1)[1:], 1)
+    return _label_means(np.where(inside & (dist >= 0.5 * far[lab]), lab, 0), count, above)
+
+
+def _label_means(lab: np.ndarray, count: int, values: np.ndarray) -> np.ndarray:
+    """The mean of ``values`` over each label 1..``count`` of ``lab`` (0 where a label has
+    no pixel): bincounts, not ``ndimage.mean``, which sorts the labels."""
+    lab = lab.ravel()
+    sums = np.bincount(lab, weights=values.ravel().astype(np.float64), minlength=count + 1)[1:]
+    return sums / np.maximum(np.bincount(lab, minlength=count + 1)[1:], 1)
 
 
 def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None = None, edge_sd: float = EDGE_SD,
@@ -701,8 +707,9 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     ridge) may print anywhere along it or not at all; with ``image`` (the print's image on
     ``T``'s grid in ``T``'s units, the fit's gain and offset taken out; NaN outside the
     image) one of whose core (``seen_shares``) less than SEEN_SHARE, or of whose pixels
-    less than SEEN_AREA, is above the level in the image did not print as predicted. Their edges are left out. Counted, they made a print that is one
-    block and such a line count as several features whose places fix its scale, while
+    less than SEEN_AREA, is above the level in the image did not print as predicted.
+    Their edges are left out. Counted, they made a print that is one block and such a
+    line count as several features whose places fix its scale, while
     the block's size set it (a lines print of seed 1443771177's lab 5, `ok` 2.4 px off
     with a size spread of 1.0 px: 26 predicted specks along its second line).
 
@@ -746,16 +753,13 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     if count == 0:
         return float("inf")
     k = near[ys, xs]
-    labels = np.arange(1, count + 1)
     # features that surely print: a peak of at least MARGINAL_PEAK x the level (any pixel there, counted by
     # label; ndimage.maximum sorts the labels, 50 ms a call on a grating's hundreds of features)
     good = np.bincount(lab[T >= MARGINAL_PEAK * lvl], minlength=count + 1)[1:] > 0
     if image is not None:
         with np.errstate(invalid="ignore"):
             above = image >= lvl
-        area = np.bincount(lab.ravel(), weights=above.ravel().astype(np.float64), minlength=count + 1)[1:]
-        area /= np.maximum(np.bincount(lab.ravel(), minlength=count + 1)[1:], 1)
-        good &= (seen_shares(lab, count, above) >= SEEN_SHARE) & (area >= SEEN_AREA)
+        good &= (seen_shares(lab, count, above) >= SEEN_SHARE) & (_label_means(lab, count, above) >= SEEN_AREA)
     keep = np.concatenate([[False], good])[k]
     if keep.sum() < 10:
         return float("inf")
