@@ -71,6 +71,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import tifffile
 import yaml
 
 from unscatter.imaging import Settings, correct_image, threshold_print, transform_rms_px
@@ -100,7 +101,7 @@ def _float(v, default=float("nan")) -> float:
 def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
     """Per print: status, QC reason, transform error (wherever qc.tsv has a matrix, failed
     prints included), IoU as registered (ok and empty prints), and IoU with the true
-    transform (a perfect registration of the same image, same flat field and threshold)."""
+    transform (a perfect registration of the same image, same flat field, stain and threshold)."""
     qc = {r["id"]: r for r in read_tsv(reg_dir / "qc.tsv")}
     meta = read_yaml(reg_dir / "batch.yaml")
     offset = float(meta.get("camera_offset_adu", 0) or 0)
@@ -123,7 +124,9 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
         thr = _float(q.get("threshold"))
         if np.isfinite(thr):
             k = correct_image(mid, Path(q["image"]), offset, Settings(), q["flatfield"])
-            row["iou_perfect"] = iou(threshold_print(k.c, Mt, thr, size)[1], tp)
+            stain = reg_dir / "stain" / f"{mid}.tif"  # what the registration divided the print's image by (its stain)
+            divisor = tifffile.imread(stain) if stain.exists() else None
+            row["iou_perfect"] = iou(threshold_print(k.c, Mt, thr, size, divisor)[1], tp)
         if q["status"] in ("ok", "empty"):
             row["iou"] = iou(read_print(reg_dir / f"{mid}.png"), tp)
         out.append(row)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import tifffile
 from scipy import ndimage
 
 from ..settings import REGISTRATION
@@ -21,7 +22,7 @@ from .priors import rotation_range, scale_prior, scale_range
 from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
-                   edge_misfit, EDGE_SD)
+                   edge_misfit, EDGE_SD, NUISANCE)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
@@ -95,6 +96,11 @@ class Settings:
     stain_batch_sd: float = 0.02  # ... down to this in a batch where template_min_prints prints reach stain_min_sd
     stain_slope_sd: float = 0.1  # ... and in such a batch each print's brightness slopes across the field are fitted
     # with its pose, this their prior sd (``pose.BRIGHTNESS``; 0: none)
+    stain_threshold: bool = True  # the prints of a batch that stains are thresholded on their images divided by the
+    # stain (its field across the print, stain_divisor, and where the batch stains its mean over the print), and the
+    # batch's dense level is taken from those images (False: on the images as they are)
+    stain_cured: float = 0.9  # ... the mean only for prints whose template reaches this share of full cure over their
+    # interiors (a thin line's gain trades with its dose: divided by it, lines came out 1.6 to 4.5 px too small)
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
@@ -666,13 +672,36 @@ def smoothing_px(scale: float) -> float:
     return max(0.5, 0.6 / scale)
 
 
-def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int):
-    """The corrected image in design coordinates and the print: smoothed against noise
-    over about one image pixel, then the batch threshold. Returns (registered, print)."""
+def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int, divisor: np.ndarray | None = None):
+    """The corrected image in design coordinates and the print: divided by the print's
+    stain where it has one (``divisor``, on the design grid: ``stain_divisor``), smoothed
+    against noise over about one image pixel, then the batch threshold. Returns
+    (registered, print)."""
     reg = warp_to_design(c, M, design_px)
+    if divisor is not None:
+        reg = reg / divisor
     scale = np.sqrt(abs(np.linalg.det(M[:, :2])))
     reg_s = cv2.GaussianBlur(np.nan_to_num(reg, nan=0.0), (0, 0), smoothing_px(scale))
     return reg, reg_s >= thr
+
+
+def stain_divisor(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit, img_smooth: np.ndarray, sigma_px: float):
+    """A print's stain on the design grid (``tmpl``'s full grid less its margin), at its
+    fit's pose: the smooth field of its image over its fit's prediction across its cured
+    interiors (``stain_ratio``, ``stain_field``), the prediction without the fit's
+    brightness slopes (a stain too), relative to the print's median there; and the
+    template's median over those interiors (1: cured through). None for a print with no
+    interiors to measure it on (a fine grating, a star's spokes). ``img_smooth``: the
+    corrected image, smoothed by 1 px, not divided."""
+    q = np.array(fit.q, float)
+    q[len(NUISANCE):] = 0.0
+    T = print_template(tmpl, B, x, q, derivatives=False)[0]
+    ratio, inner = stain_ratio(warp_to_design(img_smooth, fit.M, tmpl.shape[0]), fit.gain * T + fit.offset, fit.offset,
+                               print_level(fit, T))
+    if not inner.any():
+        return None
+    m = tmpl.margin
+    return stain_field(ratio, inner, sigma_px)[0][m:-m, m:-m], float(np.median(T[inner > 0]))
 
 
 def measurement_record(template: dict, rows: list[dict], level: float, meta=None) -> dict:
@@ -917,10 +946,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # (``stain_field``) is fitted with one gain, and its dim part's edges are pulled inside
     # its bright part's. Where a print's interiors show such a field at its first chosen
     # pose, the image its pose and the template are fitted to is divided by it (the
-    # polymer, not the background), and the print is chosen again (below). The print itself
-    # is still thresholded on the image as it is: the field is a model's, and what the
-    # threshold measures is the image.
-    stains = {}
+    # polymer, not the background), and the print is chosen again (below). The print is
+    # thresholded on its image divided by its stain as well, measured again at its final
+    # pose (step 5f).
+    stains, batch_stained = {}, False
     if np.isfinite(s.stain_min_sd):
         n_grid = design_px + 2 * MARGIN
 
@@ -939,8 +968,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         fields = list(pool.map(stain_of, list(ratios)))
         # a stain is the lab's (its staining, its bleaching): where enough of the batch's
         # prints show one, every print's field is divided out down to stain_batch_sd
-        least = (s.stain_batch_sd if sum(sd >= s.stain_min_sd for _, _, sd in fields) >= s.template_min_prints
-                 else s.stain_min_sd)
+        batch_stained = sum(sd >= s.stain_min_sd for _, _, sd in fields) >= s.template_min_prints
+        least = s.stain_batch_sd if batch_stained else s.stain_min_sd
         for mid, fld, sd in fields:
             if sd >= least:
                 stains[mid] = sd
@@ -1333,6 +1362,49 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         else:
             empty.add(mid)
 
+    # 5f. the images the prints are thresholded on. A stain is the image's, not the print's:
+    # thresholded as it is, a print's dim part comes out too small and its bright part too
+    # large, and the batch's dense level (its brightest polymer) is where the stain is
+    # brightest. So each print whose image was divided for its pose (or, where the batch
+    # stains, every print with cured interiors) is thresholded on its image divided by its
+    # stain at its final pose (``stain_divisor``), and the dense level comes from those
+    # images (unless declared or measured on a reference)
+    divisors, dense_as_imaged, cured, g_med = {}, None, [], None
+    if s.stain_threshold and stains:
+        def smooth_raw(mid):  # the image as ``smooth`` held it before 5a divided it
+            return cv2.GaussianBlur(corr[mid].c, (0, 0), 1.0)
+
+        def field_of(mid):
+            return mid, stain_divisor(full, exposure_of(mid), x, choices[mid].fit, smooth_raw(mid), s.stain_sigma_px)
+
+        cands = [mid for mid in todo if choices[mid].fit is not None and (batch_stained or mid in stains)]
+        fields = {mid: fld for mid, fld in pool.map(field_of, cands) if fld is not None}
+        # where the batch stains, a print's mean brightness is the stain's too: each print whose
+        # interiors the template cures through (its gain then the brightness of cured polymer,
+        # not a trade with its dose) is divided by its gain over their median as well
+        cured = [mid for mid, (_, t) in fields.items() if t >= s.stain_cured]
+        g_med = (float(np.median([choices[mid].fit.gain for mid in cured]))
+                 if batch_stained and len(cured) >= s.template_min_prints else None)
+        for mid, (fld, t) in fields.items():
+            divisors[mid] = fld * np.float32(choices[mid].fit.gain / g_med) if g_med and t >= s.stain_cured else fld
+        if divisors and batch.meta.dense_level is None and not reference:
+            def divided(mid, k):
+                if mid not in divisors:
+                    return k
+                H, W = k.c.shape
+                d = cv2.warpAffine(divisors[mid], to_design(choices[mid].fit.M, MARGIN).astype(np.float64), (W, H),
+                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+                return replace(k, c=(k.c / d).astype(np.float32))
+
+            before = dense_as_imaged = dense
+            dense, thr = dense_level([divided(mid, k) for mid, k in corr.items() if mid not in odd], s)
+            log.info("stain: %d prints thresholded on their images divided by it%s; dense polymer level %.3g (%.3g on "
+                     "the images as they are), threshold %.3g", len(divisors),
+                     f" and by their brightness over the batch's median ({min(choices[m].fit.gain for m in cured) / g_med:.2f}"
+                     f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, before, thr)
+
+    n_divided, n_bright = len(divisors), len(cured) if divisors and g_med else 0
+
     # 6. warp, threshold, QC, write
     def finish(mid):
         k, mask = corr[mid], masks[mid]
@@ -1356,7 +1428,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         ch = choices[mid]
         M = to_design(ch.fit.M, MARGIN)
         pose = pose_of(M, design_px, k.c.shape)
-        reg, printed = threshold_print(k.c, M, thr, design_px)
+        reg, printed = threshold_print(k.c, M, thr, design_px, divisors.get(mid))
+        if mid in divisors:  # what the print's image was divided by before its threshold
+            (out_dir / "stain").mkdir(exist_ok=True)
+            tifffile.imwrite(out_dir / "stain" / f"{mid}.tif", divisors.pop(mid))
         tpl = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
@@ -1479,7 +1554,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
                                                                      width_counted=False, prints=kernel_prints),
                                                    stain=dict(prints=len(stains), sigma_px=s.stain_sigma_px, min_sd=s.stain_min_sd,
-                                                              template_refitted=stain_refit),
+                                                              template_refitted=stain_refit, thresholded_divided=n_divided,
+                                                              by_brightness=n_bright,
+                                                              dense_level_as_imaged=dense_as_imaged),
                                                    stated_scatter=scatter))
     contact_sheet(out_dir / "overlays", rows, out_dir / "overlays.png")
     return rows
