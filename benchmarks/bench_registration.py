@@ -70,6 +70,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import tifffile
 import yaml
@@ -124,9 +125,12 @@ def evaluate(reg_dir: Path, truth_dir: Path, size: int = 512) -> list[dict]:
         thr = _float(q.get("threshold"))
         if np.isfinite(thr):
             k = correct_image(mid, Path(q["image"]), offset, Settings(), q["flatfield"])
-            stain = reg_dir / "stain" / f"{mid}.tif"  # what the registration divided the print's image by (its stain)
-            divisor = tifffile.imread(stain) if stain.exists() else None
-            row["iou_perfect"] = iou(threshold_print(k.c, Mt, thr, size, divisor)[1], tp)
+            stain = reg_dir / "stain" / f"{mid}.tif"  # what the registration divided the print's image by (its stain),
+            c = k.c  # on the design grid at the pose it found: into the image by that pose, out of it by the true one
+            if stain.exists() and Me is not None:
+                c = c / cv2.warpAffine(tifffile.imread(stain), Me.astype(np.float64), c.shape[::-1], flags=cv2.INTER_LINEAR,
+                                       borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+            row["iou_perfect"] = iou(threshold_print(c, Mt, thr, size)[1], tp)
         if q["status"] in ("ok", "empty"):
             row["iou"] = iou(read_print(reg_dir / f"{mid}.png"), tp)
         out.append(row)
@@ -425,6 +429,7 @@ def qc_lines(rows: list[dict]) -> list[str]:
 
 REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports them
     ("faint", ("faint",)),
+    ("above only the stain's threshold", ("not registered:",)),
     ("scale rests on a feature's size", ("pose not determined by the print: its scale rests",)),
     ("scale held, pose rests on sizes", ("pose not determined by the print: its scale held",)),
     ("pose rests on the kernel's shape", ("pose not determined by the print: it rests on the shape",)),

@@ -8,7 +8,8 @@ vignetting, background and noise, with no fiducial marks. For each print of a ba
    units of the local background, comparable between the prints of a batch.
 2. **One threshold per batch** (``flatfield.dense_level``): the print is where polymer
    density is at least ``level`` times that of dense, fully cured polymer, that level
-   estimated once for the whole batch. An image with nothing above it is **empty**.
+   estimated once for the whole batch (in a batch that stains, again on its images with
+   the stain divided out, before the empty and faint test). An image with nothing above it is **empty**.
 3. **Pose** (``pose``): several distinct coarse poses, each refined by Gauss-Newton
    against the batch's print template (``template``) with the print's own dose, gain
    and offset; the moves under which the predicted print maps onto itself (a grating's

@@ -857,7 +857,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         dense, thr = declared_level(reference["level"], dense, corr, ff_mode, s, batch_dir / "batch.yaml", "dense_reference")
     log.info("flat field: %s; dense polymer level %.3g, threshold %.3g (level %.2f)", ff_mode, dense, thr, s.level)
     smooth = {mid: cv2.GaussianBlur(k.c, (0, 0), 1.0) for mid, k in corr.items()}
-    low = {}  # too little above the threshold to register: empty or faint (decided after the poses, step 5e)
+    low = {}  # too little above the threshold to register: empty or faint (decided after the poses, step 5f)
     for mid, k in corr.items():
         if mid in odd:
             continue
@@ -948,7 +948,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # pose, the image its pose and the template are fitted to is divided by it (the
     # polymer, not the background), and the print is chosen again (below). The print is
     # thresholded on its image divided by its stain as well, measured again at its final
-    # pose (step 5f).
+    # pose (step 5e).
     stains, batch_stained = {}, False
     if np.isfinite(s.stain_min_sd):
         n_grid = design_px + 2 * MARGIN
@@ -1136,7 +1136,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo}, placed_scales, s)
     if len(placed) < s.size_min_prints:
         # a small batch: its template's size error is assumed, not measured (README, "Small registration batches"):
-        # the size spread of every print (size_spread) and the erosion of the faint test (5e) rest on size_sd,
+        # the size spread of every print (size_spread) and the erosion of the faint test (5f) rest on size_sd,
         # which the batch cannot check
         log.warning("prints whose pose their features' places fix: %d of %d, fewer than the %d needed to measure how "
                     "far the template's feature sizes are off; they are assumed right within %.1f px, and a print whose "
@@ -1328,7 +1328,52 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     for mid, moved in zip(fitted, pool.map(kernel_moved, fitted)):
         choices[mid].fit.model_sd = moved
 
-    # 5e. an image too faint to register is empty only where nothing that its mask may have
+    # 5e. the images the prints are thresholded on. A stain is the image's, not the print's:
+    # thresholded as it is, a print's dim part comes out too small and its bright part too
+    # large, and the batch's dense level (its brightest polymer) is where the stain is
+    # brightest. So each print whose image was divided for its pose (or, where the batch
+    # stains, every print with cured interiors) is thresholded on its image divided by its
+    # stain at its final pose (``stain_divisor``), and the dense level comes from those
+    # images (unless declared or measured on a reference)
+    divisors, div_gain, dense_as_imaged, cured, g_med = {}, {}, None, [], None
+    if s.stain_threshold and stains:
+        def smooth_raw(mid):  # the image as ``smooth`` held it before 5a divided it
+            return cv2.GaussianBlur(corr[mid].c, (0, 0), 1.0)
+
+        def field_of(mid):
+            return mid, stain_divisor(full, exposure_of(mid), x, choices[mid].fit, smooth_raw(mid), s.stain_sigma_px)
+
+        # prints whose pose is their own (a field measured at a pose a spoke off is no stain)
+        cands = [mid for mid in todo if determined(choices[mid], s) and (batch_stained or mid in stains)]
+        fields = {mid: fld for mid, fld in pool.map(field_of, cands) if fld is not None}
+        # where the batch stains, a print's mean brightness is the stain's too: each print whose
+        # interiors the template cures through (its gain then the brightness of cured polymer,
+        # not a trade with its dose) is divided by its gain over their median as well
+        cured = [mid for mid, (_, t) in fields.items() if t >= s.stain_cured]
+        g_med = (float(np.median([choices[mid].fit.gain for mid in cured]))
+                 if batch_stained and len(cured) >= s.template_min_prints else None)
+        for mid, (fld, t) in fields.items():
+            by = g_med if g_med and t >= s.stain_cured else choices[mid].fit.gain  # the gain the divided image has
+            divisors[mid], div_gain[mid] = fld * np.float32(choices[mid].fit.gain / by), by
+        if divisors and batch.meta.dense_level is None and not reference:  # the empty and faint test (5f) at this level
+            def divided(mid, k):
+                if mid not in divisors:
+                    return k
+                H, W = k.c.shape
+                d = cv2.warpAffine(divisors[mid], to_design(choices[mid].fit.M, MARGIN).astype(np.float64), (W, H),
+                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
+                return replace(k, c=(k.c / d).astype(np.float32))
+
+            before = dense_as_imaged = dense
+            dense, thr = dense_level([divided(mid, k) for mid, k in corr.items() if mid not in odd], s)
+            log.info("stain: %d prints thresholded on their images divided by it%s; dense polymer level %.3g (%.3g on "
+                     "the images as they are), threshold %.3g", len(divisors),
+                     f" and by their brightness over the batch's median ({min(choices[m].fit.gain for m in cured) / g_med:.2f}"
+                     f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, before, thr)
+
+    n_divided, n_bright = len(divisors), len(cured) if divisors and g_med else 0
+
+    # 5f. an image too faint to register is empty only where nothing that its mask may have
     # printed could image that bright: its features cured at the print level, their edges
     # moved in by the batch's erosion at its pessimistic bound (offset less one spread),
     # and blurred by the microscope (thin lines of an eroding batch image far below the
@@ -1341,6 +1386,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     dim = dimmest([choices[mid].fit.gain for mid in placed_ids], s)
     empty, faint = set(), {}
     for mid, n_above in low.items():
+        if dense_as_imaged is not None:  # the threshold the stain's division set (5e), not the one 'low' was judged at
+            n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * corr[mid].noise)))
+            if n_above >= s.min_print_px:
+                faint[mid] = (f"not registered: {n_above} px above the batch threshold, which the stain's division "
+                              f"lowered to {thr:.3g}, but fewer than {s.min_print_px} above the threshold of the images as "
+                              f"they are ({s.level * dense_as_imaged:.3g}), at which the batch's poses were sought")
+                continue
         peak = float(smooth[mid].max())
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
         blur = float(np.hypot(x[10], 1.0 / sc))
@@ -1362,48 +1414,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         else:
             empty.add(mid)
 
-    # 5f. the images the prints are thresholded on. A stain is the image's, not the print's:
-    # thresholded as it is, a print's dim part comes out too small and its bright part too
-    # large, and the batch's dense level (its brightest polymer) is where the stain is
-    # brightest. So each print whose image was divided for its pose (or, where the batch
-    # stains, every print with cured interiors) is thresholded on its image divided by its
-    # stain at its final pose (``stain_divisor``), and the dense level comes from those
-    # images (unless declared or measured on a reference)
-    divisors, dense_as_imaged, cured, g_med = {}, None, [], None
-    if s.stain_threshold and stains:
-        def smooth_raw(mid):  # the image as ``smooth`` held it before 5a divided it
-            return cv2.GaussianBlur(corr[mid].c, (0, 0), 1.0)
-
-        def field_of(mid):
-            return mid, stain_divisor(full, exposure_of(mid), x, choices[mid].fit, smooth_raw(mid), s.stain_sigma_px)
-
-        cands = [mid for mid in todo if choices[mid].fit is not None and (batch_stained or mid in stains)]
-        fields = {mid: fld for mid, fld in pool.map(field_of, cands) if fld is not None}
-        # where the batch stains, a print's mean brightness is the stain's too: each print whose
-        # interiors the template cures through (its gain then the brightness of cured polymer,
-        # not a trade with its dose) is divided by its gain over their median as well
-        cured = [mid for mid, (_, t) in fields.items() if t >= s.stain_cured]
-        g_med = (float(np.median([choices[mid].fit.gain for mid in cured]))
-                 if batch_stained and len(cured) >= s.template_min_prints else None)
-        for mid, (fld, t) in fields.items():
-            divisors[mid] = fld * np.float32(choices[mid].fit.gain / g_med) if g_med and t >= s.stain_cured else fld
-        if divisors and batch.meta.dense_level is None and not reference:
-            def divided(mid, k):
-                if mid not in divisors:
-                    return k
-                H, W = k.c.shape
-                d = cv2.warpAffine(divisors[mid], to_design(choices[mid].fit.M, MARGIN).astype(np.float64), (W, H),
-                                   flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
-                return replace(k, c=(k.c / d).astype(np.float32))
-
-            before = dense_as_imaged = dense
-            dense, thr = dense_level([divided(mid, k) for mid, k in corr.items() if mid not in odd], s)
-            log.info("stain: %d prints thresholded on their images divided by it%s; dense polymer level %.3g (%.3g on "
-                     "the images as they are), threshold %.3g", len(divisors),
-                     f" and by their brightness over the batch's median ({min(choices[m].fit.gain for m in cured) / g_med:.2f}"
-                     f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, before, thr)
-
-    n_divided, n_bright = len(divisors), len(cured) if divisors and g_med else 0
 
     # 6. warp, threshold, QC, write
     def finish(mid):
@@ -1429,10 +1439,17 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         M = to_design(ch.fit.M, MARGIN)
         pose = pose_of(M, design_px, k.c.shape)
         reg, printed = threshold_print(k.c, M, thr, design_px, divisors.get(mid))
-        if mid in divisors:  # what the print's image was divided by before its threshold
+        gain = ch.fit.gain
+        if mid in divisors:  # what the print's image was divided by before its threshold; the divided image is
+            # the fit's print without its brightness slopes, at the gain it was divided to (stain_divisor)
             (out_dir / "stain").mkdir(exist_ok=True)
             tifffile.imwrite(out_dir / "stain" / f"{mid}.tif", divisors.pop(mid))
-        tpl = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
+            q = np.array(ch.fit.q, float)
+            q[len(NUISANCE):] = 0.0
+            tpl = print_template(full, exposure_of(mid), x, q, derivatives=False)[0][MARGIN:-MARGIN, MARGIN:-MARGIN]
+            gain = div_gain[mid]
+        else:
+            tpl = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
@@ -1507,7 +1524,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"the batch")
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
-        predicted = ch.fit.gain * tpl + ch.fit.offset
+        predicted = gain * tpl + ch.fit.offset
         peak = float(predicted.max())
         if printed.any() and peak < thr:
             # a near-threshold print whose polymer the fit puts below the threshold everywhere:
