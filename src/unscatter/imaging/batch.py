@@ -1372,6 +1372,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                      f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, before, thr)
 
     n_divided, n_bright = len(divisors), len(cured) if divisors and g_med else 0
+    # a print the fit puts below the threshold is near it (step 6), as thresholded or as imaged:
+    # a cut-off grating that cured nothing, whose fit as imaged put its polymer at 95 % of the
+    # threshold of the images as they are, passed the divided check as ok, 6.5 px off
+    near = thr if dense_as_imaged is None else s.level * dense_as_imaged
 
     # 5f. an image too faint to register is empty only where nothing that its mask may have
     # printed could image that bright: its features cured at the print level, their edges
@@ -1440,6 +1444,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         pose = pose_of(M, design_px, k.c.shape)
         reg, printed = threshold_print(k.c, M, thr, design_px, divisors.get(mid))
         gain = ch.fit.gain
+        tpl = as_imaged = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         if mid in divisors:  # what the print's image was divided by before its threshold; the divided image is
             # the fit's print without its brightness slopes, at the gain it was divided to (stain_divisor)
             (out_dir / "stain").mkdir(exist_ok=True)
@@ -1448,8 +1453,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             q[len(NUISANCE):] = 0.0
             tpl = print_template(full, exposure_of(mid), x, q, derivatives=False)[0][MARGIN:-MARGIN, MARGIN:-MARGIN]
             gain = div_gain[mid]
-        else:
-            tpl = predicted_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
         cov = coverage(M, mask, k.c.shape)
@@ -1525,14 +1528,18 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if cov < s.min_coverage:
             reasons.append(f"print extends beyond the image (only {100 * cov:.1f} % in view)")
         predicted = gain * tpl + ch.fit.offset
-        peak = float(predicted.max())
-        if printed.any() and peak < thr:
+        # below the threshold as thresholded, or as imaged (the fit's print with its slopes, against the
+        # threshold of the images as they are): either makes a print near the threshold
+        share = min(float(predicted.max()) / thr, float((ch.fit.gain * as_imaged + ch.fit.offset).max()) / near)
+        if printed.any() and share < 1.0:
             # a near-threshold print whose polymer the fit puts below the threshold everywhere:
             # what crosses it is noise (or a cure the template does not predict), and its pose
             # rests on the grey of uncured gel, not on a print's edges
             reasons.append(f"near the threshold: at this pose and dose the batch's template puts its polymer at "
-                           f"{100 * peak / thr:.0f} % of the threshold at most, so the "
-                           f"{int(printed.sum())} px above it are noise or a cure the template does not predict")
+                           f"{100 * share:.0f} % of the threshold at most"
+                           + (" (as imaged or divided by its stain)" if mid in div_gain else "")
+                           + f", so the {int(printed.sum())} px above it are noise or a cure the template does not "
+                           f"predict")
         row["solid_fraction"] = round(float(printed.mean()), 5)
         row["misfit"] = misfit_px(printed, predicted, thr)
         write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
