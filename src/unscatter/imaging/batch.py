@@ -685,6 +685,13 @@ def threshold_print(c: np.ndarray, M: np.ndarray, thr: float, design_px: int, di
     return reg, reg_s >= thr
 
 
+def slopeless_print(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit) -> np.ndarray:
+    """``predicted_print`` without the fit's brightness slopes (a stain's, which a divided image no longer has)."""
+    q = np.array(fit.q, float)
+    q[len(NUISANCE):] = 0.0
+    return print_template(tmpl, B, x, q, derivatives=False)[0]
+
+
 def stain_divisor(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit, img_smooth: np.ndarray, sigma_px: float):
     """A print's stain on the design grid (``tmpl``'s full grid less its margin), at its
     fit's pose: the smooth field of its image over its fit's prediction across its cured
@@ -693,9 +700,7 @@ def stain_divisor(tmpl: PrintTemplate, B: np.ndarray, x, fit: Fit, img_smooth: n
     template's median over those interiors (1: cured through). None for a print with no
     interiors to measure it on (a fine grating, a star's spokes). ``img_smooth``: the
     corrected image, smoothed by 1 px, not divided."""
-    q = np.array(fit.q, float)
-    q[len(NUISANCE):] = 0.0
-    T = print_template(tmpl, B, x, q, derivatives=False)[0]
+    T = slopeless_print(tmpl, B, x, fit)
     ratio, inner = stain_ratio(warp_to_design(img_smooth, fit.M, tmpl.shape[0]), fit.gain * T + fit.offset, fit.offset,
                                print_level(fit, T))
     if not inner.any():
@@ -1364,12 +1369,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                    flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
                 return replace(k, c=(k.c / d).astype(np.float32))
 
-            before = dense_as_imaged = dense
+            dense_as_imaged = dense
             dense, thr = dense_level([divided(mid, k) for mid, k in corr.items() if mid not in odd], s)
             log.info("stain: %d prints thresholded on their images divided by it%s; dense polymer level %.3g (%.3g on "
                      "the images as they are), threshold %.3g", len(divisors),
                      f" and by their brightness over the batch's median ({min(choices[m].fit.gain for m in cured) / g_med:.2f}"
-                     f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, before, thr)
+                     f" to {max(choices[m].fit.gain for m in cured) / g_med:.2f})" if g_med else "", dense, dense_as_imaged, thr)
 
     n_divided, n_bright = len(divisors), len(cured) if divisors and g_med else 0
     # a print the fit puts below the threshold is near it (step 6), as thresholded or as imaged:
@@ -1449,9 +1454,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # the fit's print without its brightness slopes, at the gain it was divided to (stain_divisor)
             (out_dir / "stain").mkdir(exist_ok=True)
             tifffile.imwrite(out_dir / "stain" / f"{mid}.tif", divisors.pop(mid))
-            q = np.array(ch.fit.q, float)
-            q[len(NUISANCE):] = 0.0
-            tpl = print_template(full, exposure_of(mid), x, q, derivatives=False)[0][MARGIN:-MARGIN, MARGIN:-MARGIN]
+            tpl = slopeless_print(full, exposure_of(mid), x, ch.fit)[MARGIN:-MARGIN, MARGIN:-MARGIN]
             gain = div_gain[mid]
         exposed.pop(mid, None)  # its last use
         score = ncc(reg, tpl)
