@@ -329,7 +329,7 @@ def print_lab_batch(masks_dir: Path, batch_dir: Path, overrides: dict, seed: int
 
 
 def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int,
-                      declare_blur: bool = False, dense_reference: bool = False) -> tuple[Path, dict]:
+                      declare_blur: bool = False, dense_reference: bool = False, half_cure: bool = False) -> tuple[Path, dict]:
     """The trial masks printed and imaged by the whole random lab (``random_lab``'s
     microscope, camera and metadata drawn from ``lab_seed`` as ``random_effect_lab``
     drew its printer, with that printer), and registered as the workflow does: the
@@ -351,7 +351,7 @@ def _registered_batch(d: Path, trial: dict, over: dict, lab_seed: int, size: int
         write_png(d / "masks" / f"{mid}.png", m)
     print_lab_batch(d / "masks", d / "batch", full, lab_seed, size, dense_reference)
     t0 = time.perf_counter()
-    qc = register_batch(d / "batch", d / "prints", skip_failed=True, progress=False)
+    qc = register_batch(d / "batch", d / "prints", skip_failed=True, progress=False, half_cure=half_cure)
     t_reg = time.perf_counter() - t0
     rows = bench_registration.evaluate(d / "prints", d / "batch.truth", size=size)
     failed = sum(r["status"] == "failed" for r in qc)
@@ -401,6 +401,7 @@ def random_labs(args) -> None:
                                                           f"{'_sigma' + args.sigma_um.replace(',', '-') if args.sigma_um else ''}"
                                                           f"{'_blur' if args.declare_blur else ''}"
                                                           f"{'_ref' if args.dense_reference else ''}"
+                                                          f"{'_halfcure' if args.half_cure else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -413,6 +414,7 @@ def random_labs(args) -> None:
            + (" --registered" if args.registered else "") + (f" --sigma-um {args.sigma_um}" if args.sigma_um else "")
            + (" --declare-blur" if args.declare_blur else "")
            + (" --dense-reference" if args.dense_reference else "")
+           + (" --half-cure" if args.half_cure else "")
            + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -466,7 +468,8 @@ def random_labs(args) -> None:
         trial_visible = float(np.mean(fit_clean != np.stack([clean[k] for k in trial])))
         reg = {}
         if args.registered:  # the trial prints through the lab's microscope and the registration
-            prints, reg = _registered_batch(d, trial, over, lab_seed, size, args.declare_blur, args.dense_reference)
+            prints, reg = _registered_batch(d, trial, over, lab_seed, size, args.declare_blur, args.dense_reference,
+                                            args.half_cure)
         else:
             prints = _write_batch(d / "prints", trial, tr_prints, px)
         write_yaml(d / "lab.yaml", dict(seed=lab_seed, effect=effect, magnitude=mag, printer=cfg["printer"], **reg))
@@ -697,6 +700,9 @@ def main():
                     help="--registered: each batch holds a dense reference (a large block at 4 times the exposure, "
                          "batch.yaml dense_reference), on which the registration measures the fully cured level instead "
                          "of estimating it from the batch's brightest polymer (output folder suffix _ref)")
+    ap.add_argument("--half-cure", action="store_true",
+                    help="--registered: the registration cuts each print where the batch's template puts the half cure "
+                         "(registration setting half_cure, template.half_cure_level; output folder suffix _halfcure)")
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()

@@ -1552,6 +1552,47 @@ def test_an_uneven_stain_is_divided_out_of_the_images_the_poses_are_fitted_to(tm
     assert edge["divided"] <= 0.8 and edge["imaged"] >= 2.0, edge
 
 
+def test_the_half_cure_level_undoes_the_blur_of_a_polymer_that_rises_unevenly(tmp_path):
+    """A lab whose gel dose is close to its cure threshold (0.42 against 0.48: the polymer
+    rises steeply from nothing, then saturates slowly), imaged with a 3 px blur. Cut at half
+    of the dense polymer, every print comes out too small (the image at the half cure's
+    place is below half of the plateau: the blur averages the slow rise inside with the
+    nothing outside); cut where the batch's template crosses its half cure
+    (``half_cure``, ``template.half_cure_level``), the prints' edges move toward the lab's
+    true ones: a median -0.29 px per edge px of the ok prints against -0.03."""
+    from unscatter.imaging.template import PrintTemplate, half_cure_level
+
+    for k, mask in patterns.trial_masks(10, seed=12).items():
+        write_png(tmp_path / "masks" / f"{k}.png", mask)
+    over = {"printer": {"cure": {"threshold": 0.48, "gel_dose": 0.42}, "kernel": {"heavy_tail": None}},
+            "microscope": {"blur_px": [3.0, 3.0]}}
+    print_batch(tmp_path / "masks", tmp_path / "batch", overrides=over, seed=5, progress=False)
+    bias = {}
+    for name, kw in (("half", {"half_cure": True}), ("plain", {})):
+        register_batch(tmp_path / "batch", tmp_path / name, skip_failed=True, progress=False, **kw)
+        rows = [r for r in read_tsv(tmp_path / name / "qc.tsv") if r["status"] == "ok"]
+        assert len(rows) >= 8, [(r["id"], r["status"], r["reason"]) for r in read_tsv(tmp_path / name / "qc.tsv")]
+        bias[name] = float(np.median([_edge_bias_px(tmp_path / name, tmp_path / "batch.truth", r["id"]) for r in rows]))
+        reg = read_yaml(tmp_path / name / "registration.yaml")
+        if name == "half":
+            x = [reg["print_template"][n] for n in PrintTemplate.NAMES]
+            assert reg["half_cure"]["level"] == pytest.approx(half_cure_level(x, reg["half_cure"]["smoothing_px"]), abs=1e-3)
+            assert reg["half_cure"]["level"] < 0.5 and reg["measurement"] is None
+            assert float(rows[0]["threshold"]) == pytest.approx(reg["half_cure"]["threshold"], rel=1e-3)
+        else:
+            assert reg["half_cure"] is None and reg["measurement"]["level"] == 0.5
+    assert bias["plain"] <= -0.2, bias
+    assert abs(bias["half"]) <= 0.5 * abs(bias["plain"]), bias
+
+
+def _edge_bias_px(reg_dir, truth_dir, mid: str) -> float:
+    """A registered print's area less the lab's true print's, per edge pixel of the true
+    print (a signed mean edge displacement, px: > 0 too large)."""
+    P, T = read_print(reg_dir / f"{mid}.png"), read_print(truth_dir / "prints" / f"{mid}.png")
+    edges = np.count_nonzero(T[1:] != T[:-1]) + np.count_nonzero(T[:, 1:] != T[:, :-1])
+    return float((np.count_nonzero(P) - np.count_nonzero(T)) / max(edges, 1))
+
+
 def _edge_error_px(reg_dir, truth_dir, mid: str) -> float:
     """A registered print's area that differs from the lab's true print, per edge pixel of
     the true print (a mean edge displacement, px)."""

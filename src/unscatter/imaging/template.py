@@ -271,6 +271,40 @@ TRIM = 3.0  # a print whose misfit beyond noise is this many times the median pr
 MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
 
 
+def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, step: float = 0.02) -> float | None:
+    """The image level, as a share of the image of a large area's cure, at which the
+    template's image of a straight edge crosses the edge's half cure (R = 0.5).
+
+    A thresholded image is not the cure. The polymer rises from nothing at the gel dose
+    and saturates slowly, and the microscope's blur (with the smoothing before the
+    threshold, ``smoothing_px``, design px) averages that uneven profile across the edge,
+    so the image at the half cure's place is not half of the plateau: a threshold at half
+    of it cuts the print smaller (a gel dose close to the half cure, a wide blur) or
+    larger. The edge of a large feature at full grey and ``dose``, across it the core's
+    and the tail's Gaussian marginals; the cure and the image as ``PrintTemplate`` has
+    them (anisotropy and the lamp's field left out). None where the plateau does not
+    reach half cure."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.special import ndtr
+
+    sigma, gel, k = max(float(x[0]), 0.3), float(x[1]), max(float(x[2]), 1e-3)
+    tail, tail_sigma = min(max(float(x[8]), 0.0), 0.9), max(float(x[9]), 1.0)
+    blur = float(np.hypot(max(float(x[10]), 0.3), smoothing_px))
+    haze, haze_sigma = min(max(float(x[11]), 0.0), 0.5), max(float(x[12]), 2.0)
+    reach = 6.0 * max(sigma, tail_sigma if tail > 0 else 0.0, blur, haze_sigma if haze > 0 else 0.0) + 5.0
+    u = np.arange(-reach, reach, step)  # across the edge, the print at u < 0
+    D = dose * ((1 - tail) * ndtr(-u / sigma) + (tail * ndtr(-u / tail_sigma) if tail > 0 else 0.0))
+    R = -np.expm1(-np.maximum(D - gel, 0.0) / k)
+    if R[0] <= 0.5:
+        return None
+    image = gaussian_filter1d(R, blur / step, mode="nearest")
+    if haze > 0:
+        image = (1 - haze) * image + haze * gaussian_filter1d(R, haze_sigma / step, mode="nearest")
+    i = int(np.argmax(R < 0.5))  # R falls through 0.5 between i - 1 and i
+    t = (R[i - 1] - 0.5) / (R[i - 1] - R[i])
+    return float((image[i - 1] + t * (image[i] - image[i - 1])) / image[0])
+
+
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None,
                  anisotropy: bool = True) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
