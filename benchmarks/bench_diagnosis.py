@@ -706,6 +706,8 @@ def main():
     ap.add_argument("--summarize", default=None, metavar="LABS_TSV",
                     help="print the summary of an earlier random-labs run's labs.tsv (and nothing else)")
     args = ap.parse_args()
+    if args.half_cure and not args.registered:
+        ap.error("--half-cure applies to the registration: use it with --registered")
     if args.summarize:
         from unscatter.io import read_tsv
 

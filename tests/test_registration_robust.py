@@ -1578,6 +1578,8 @@ def test_the_half_cure_level_undoes_the_blur_of_a_polymer_that_rises_unevenly(tm
             x = [reg["print_template"][n] for n in PrintTemplate.NAMES]
             assert reg["half_cure"]["level"] == pytest.approx(half_cure_level(x, reg["half_cure"]["smoothing_px"]), abs=1e-3)
             assert reg["half_cure"]["level"] < 0.5 and reg["measurement"] is None
+            # over full cure (a declared or reference dense level), not a large area's image, which cures below it
+            assert half_cure_level(x, reg["half_cure"]["smoothing_px"], full=True) < reg["half_cure"]["level"]
             assert float(rows[0]["threshold"]) == pytest.approx(reg["half_cure"]["threshold"], rel=1e-3)
         else:
             assert reg["half_cure"] is None and reg["measurement"]["level"] == 0.5

@@ -1537,7 +1537,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         predicted = gain * tpl + ch.fit.offset
         # below the threshold as thresholded, or as imaged (the fit's print with its slopes, against the
         # threshold of the images as they are): either makes a print near the threshold
-        share = min(float(predicted.max()) / thr, float((ch.fit.gain * as_imaged + ch.fit.offset).max()) / near)
+        share = min(float(predicted.max()) / thr_print, float((ch.fit.gain * as_imaged + ch.fit.offset).max())
+                    / (near * thr_print / thr))
         if printed.any() and share < 1.0:
             # a near-threshold print whose polymer the fit puts below the threshold everywhere:
             # what crosses it is noise (or a cure the template does not predict), and its pose
@@ -1547,6 +1548,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            + (" (as imaged or divided by its stain)" if mid in div_gain else "")
                            + f", so the {int(printed.sum())} px above it are noise or a cure the template does not "
                            f"predict")
+        if half_cure and not printed.any():
+            reasons.append(f"nothing above the half cure's threshold ({thr_print:.3g}; the batch threshold {thr:.3g})")
         row["solid_fraction"] = round(float(printed.mean()), 5)
         row["misfit"] = misfit_px(printed, predicted, thr_print)
         write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(reg, mask, printed, dense))
@@ -1558,7 +1561,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if s.half_cure and np.isfinite(thr):
         fitted = [float(np.exp(log_scale(ch.fit.M))) for ch in choices.values() if ch.fit is not None]
         smoothing = smoothing_px(float(np.median(fitted))) if fitted else 0.5
-        lvl = half_cure_level(x, smoothing)
+        # the level over a large area's image where the dense level is estimated from the batch's brightest
+        # polymer (that area's image), over full cure where it is declared or measured on a dense reference
+        lvl = half_cure_level(x, smoothing, full=batch.meta.dense_level is not None or bool(reference))
         if lvl is not None:
             thr_print = thr * lvl / s.level
             half_cure = dict(level=round(lvl, 4), threshold=float(thr_print), smoothing_px=round(smoothing, 4))

@@ -271,7 +271,7 @@ TRIM = 3.0  # a print whose misfit beyond noise is this many times the median pr
 MIN_TRIM = 0.5  # out of the template's fit (well_fitted)
 
 
-def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, step: float = 0.02) -> float | None:
+def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, full: bool = False, step: float = 0.02) -> float | None:
     """The image level, as a share of the image of a large area's cure, at which the
     template's image of a straight edge crosses the edge's half cure (R = 0.5).
 
@@ -282,8 +282,13 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, step: float
     of it cuts the print smaller (a gel dose close to the half cure, a wide blur) or
     larger. The edge of a large feature at full grey and ``dose``, across it the core's
     and the tail's Gaussian marginals; the cure and the image as ``PrintTemplate`` has
-    them (anisotropy and the lamp's field left out). None where the plateau does not
-    reach half cure."""
+    them (anisotropy and the lamp's field left out). ``full``: as a share of the image
+    of full cure instead (a dense level declared or measured on a dense reference). None
+    where the plateau does not reach half cure.
+
+    The blur is the template's (fitted on images smoothed by one image px) and the
+    smoothing in quadrature, which counts that smoothing twice: about 0.2 px too wide at
+    a blur of 4 px, more at 1 px (the measurements in the README were taken so)."""
     from scipy.ndimage import gaussian_filter1d
     from scipy.special import ndtr
 
@@ -302,7 +307,7 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, step: float
         image = (1 - haze) * image + haze * gaussian_filter1d(R, haze_sigma / step, mode="nearest")
     i = int(np.argmax(R < 0.5))  # R falls through 0.5 between i - 1 and i
     t = (R[i - 1] - 0.5) / (R[i - 1] - R[i])
-    return float((image[i - 1] + t * (image[i] - image[i - 1])) / image[0])
+    return float((image[i - 1] + t * (image[i] - image[i - 1])) / (1.0 if full else image[0]))
 
 
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None,
