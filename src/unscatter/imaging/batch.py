@@ -1559,8 +1559,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     thr_print, half_cure = thr, None
     if s.half_cure and np.isfinite(thr):
-        fitted = [float(np.exp(log_scale(ch.fit.M))) for ch in choices.values() if ch.fit is not None]
-        smoothing = smoothing_px(float(np.median(fitted))) if fitted else 0.5
+        print_scales = [float(np.exp(log_scale(ch.fit.M))) for ch in choices.values() if ch.fit is not None]
+        smoothing = smoothing_px(float(np.median(print_scales))) if print_scales else 0.5
         # the level over a large area's image where the dense level is estimated from the batch's brightest
         # polymer (that area's image), over full cure where it is declared or measured on a dense reference
         lvl = half_cure_level(x, smoothing, full=batch.meta.dense_level is not None or bool(reference))

@@ -292,14 +292,14 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, full: bool 
     from scipy.ndimage import gaussian_filter1d
     from scipy.special import ndtr
 
-    sigma, gel, k = max(float(x[0]), 0.3), float(x[1]), max(float(x[2]), 1e-3)
+    sigma = max(float(x[0]), 0.3)
     tail, tail_sigma = min(max(float(x[8]), 0.0), 0.9), max(float(x[9]), 1.0)
     blur = float(np.hypot(max(float(x[10]), 0.3), smoothing_px))
     haze, haze_sigma = min(max(float(x[11]), 0.0), 0.5), max(float(x[12]), 2.0)
     reach = 6.0 * max(sigma, tail_sigma if tail > 0 else 0.0, blur, haze_sigma if haze > 0 else 0.0) + 5.0
     u = np.arange(-reach, reach, step)  # across the edge, the print at u < 0
-    D = dose * ((1 - tail) * ndtr(-u / sigma) + (tail * ndtr(-u / tail_sigma) if tail > 0 else 0.0))
-    R = -np.expm1(-np.maximum(D - gel, 0.0) / k)
+    B = (1 - tail) * ndtr(-u / sigma) + (tail * ndtr(-u / tail_sigma) if tail > 0 else 0.0)  # the scattered dose
+    R = 1.0 - PrintTemplate.cured(B, x, dose)[1]  # the cure, as the template has it
     if R[0] <= 0.5:
         return None
     image = gaussian_filter1d(R, blur / step, mode="nearest")
