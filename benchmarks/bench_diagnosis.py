@@ -3,7 +3,7 @@ how much does it lower the held-out error, and how long does it take.
 
     python benchmarks/bench_diagnosis.py [--quick] [--scenarios a,b,...] [--size N] [--count N]
     python benchmarks/bench_diagnosis.py --random-labs N [--seed S] [--quick] [--objective dice] [--registered]
-        [--trial designed [--criterion d|discrimination] [--noise edge|pixel]] [--workers N] [--sigma-um LO,HI]
+        [--trial designed [--criterion d|discrimination|paired] [--noise edge|pixel]] [--workers N] [--sigma-um LO,HI]
         [--declare-blur]
 
 Random labs (``--random-labs N``, issue #12): every run draws a new seed (printed; ``--seed``
@@ -396,7 +396,10 @@ def random_labs(args) -> None:
     count = args.count or 32
     held = args.heldout
     effects = args.effects.split(",") if args.effects else list(RANDOM_EFFECTS)
-    root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}"
+    # a run with other counts or sizes than the defaults gets its own folder (and says so in its command)
+    shape = ((f"_n{count}" if count != 32 else "") + (f"_s{args.size}" if args.size else "")
+             + (f"_h{held}" if held != 16 else ""))
+    root = Path(args.out or "benchmarks/out/diagnosis") / (f"seed{seed}{'_quick' if args.quick else ''}{shape}"
                                                           f"{_designed_tag(args)}{'_registered' if args.registered else ''}"
                                                           f"{'_sigma' + args.sigma_um.replace(',', '-') if args.sigma_um else ''}"
                                                           f"{'_blur' if args.declare_blur else ''}"
@@ -406,6 +409,8 @@ def random_labs(args) -> None:
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
            + (" --quick" if args.quick else "") + (f" --effects {args.effects}" if args.effects else "")
+           + (f" --count {count}" if count != 32 else "") + (f" --size {args.size}" if args.size else "")
+           + (f" --heldout {held}" if held != 16 else "")
            + (f" --strength {args.strength}" if args.strength != "wide" else "")
            + (f" --objective {args.objective}" if args.objective else "")
            + (f" --trial {args.trial}" if args.trial != "paper" else "")
@@ -679,7 +684,7 @@ def main():
     ap.add_argument("--trial", choices=("paper", "designed"), default="paper",
                     help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
                          "the prior, seed 0, the workflow's pool, draws and registration marks)")
-    ap.add_argument("--criterion", choices=("d", "discrimination"), default="d",
+    ap.add_argument("--criterion", choices=("d", "discrimination", "paired"), default="d",
                     help="--trial designed: the design's criterion (design.design_masks)")
     ap.add_argument("--noise", choices=("edge", "pixel"), default=None,
                     help="--trial designed: the design's model of the print noise (design.NOISE; default: its default)")

@@ -117,7 +117,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     top = max(a.counts)
     t0 = time.perf_counter()
     design = design_masks(top, pool=a.pool, draws=a.draws, seed=_substream(seed, i, 1), fiducials=a.fiducials,
-                          progress=False, compare=False)
+                          criterion=a.criterion, progress=False, compare=False)
     t_design = time.perf_counter() - t0
     kinds = {
         "paper": [with_fiducials(m) if a.paper_fiducials else m for m in trial_masks(top, seed=_substream(seed, i, 2)).values()],
@@ -193,7 +193,8 @@ def _sequential(run: LabRun, a) -> list[dict]:
             break
         t0 = time.perf_counter()
         new = design_masks(n - have, model=model, prints=folders, pool=a.pool, draws=a.draws,
-                           seed=run.sub(10 + step), fiducials=a.fiducials, progress=False, compare=False)["masks"]
+                           seed=run.sub(10 + step), fiducials=a.fiducials, criterion=a.criterion, progress=False,
+                           compare=False)["masks"]
         t_design = time.perf_counter() - t0
         step_dir = d / f"sequential_{n:02d}"
         for j, m in enumerate(new.values()):
@@ -404,6 +405,8 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--pool", type=int, default=160)
     ap.add_argument("--draws", type=int, default=3)
+    ap.add_argument("--criterion", choices=("d", "discrimination", "paired"), default="d",
+                    help="the designed masks' criterion (design.design_masks)")
     ap.add_argument("--heldout", type=int, default=16)
     ap.add_argument("--full", action="store_true", help="the workflow's calibration (GA 48 x 30)")
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "print_budget")

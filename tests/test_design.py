@@ -104,6 +104,14 @@ def test_cli_masks_design(tmp_path):
 
     rows = read_tsv(tmp_path / "disc" / "design" / "separation.tsv")
     assert len(rows) == 25 and {r["rival"] for r in rows} >= {"(none)", "edge_offset"}
+    assert not (tmp_path / "disc" / "design" / "paired.tsv").exists()
+    res = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "paired"), "--count", "2", "--pool", "6",
+                                    "--draws", "1", "--size", str(SIZE), "--criterion", "paired", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    rows = read_tsv(tmp_path / "paired" / "design" / "paired.tsv")
+    assert [r["effect"] for r in rows] == ["heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field",
+                                           "edge_offset"]
+    assert all(float(r["designed_t"]) > 0 and float(r["paper_t"]) > 0 for r in rows)
     bad = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "x"), "--count", "9", "--pool", "4"])
     assert bad.exit_code == 2 and "--count" in bad.output and not (tmp_path / "x").exists()
 
@@ -288,6 +296,64 @@ def test_discrimination_design_separates_effects_better_than_random_paper_masks(
     rows = r["separation"]
     assert len(rows) == 25 and all(row["designed"] >= 0 and row["paper"] >= 0 for row in rows)
     assert np.mean([np.log1p(row["designed"]) for row in rows]) > np.mean([np.log1p(row["paper"]) for row in rows])
+
+
+def test_the_paired_criterion_prefers_evidence_spread_over_prints_to_the_same_evidence_in_one():
+    """The diagnosis accepts an effect by a paired test over prints: four prints that each
+    show a quarter of an effect's change beat one print that shows all of it beside three
+    that show none, though the design's total lack of fit is the same."""
+    rv = D.Rivals(names=["p0"], effects=["a"], own={"a": []}, base=[0], prior_precision=np.array([1.0]))
+    rng = np.random.default_rng(0)
+    c, d = rng.standard_normal(50), rng.standard_normal(50)
+
+    def gram(scale_d):
+        C = np.column_stack([c, scale_d * d])
+        return C.T @ C
+
+    spread = np.stack([gram(0.5)] * 4)[None]  # (S=1, n=4, 2, 2): a quarter of d'd in each print
+    one = np.stack([gram(1.0)] + [gram(0.0)] * 3)[None]
+    assert spread.sum(1)[0, 1, 1] == pytest.approx(one.sum(1)[0, 1, 1])
+    assert D.paired(spread, rv) > D.paired(one, rv) + 0.5
+    # the prints' lack of fit sums to the design's (``separation``) less the rival prior's share
+    for G in (spread, one):
+        T = D.per_print_lack_of_fit(G, rv)["a"]
+        Gs = G.sum(1)[0]
+        beta = Gs[0, 1] / (Gs[0, 0] + 1.0)
+        assert T.sum() + beta * 1.0 * beta == pytest.approx(D.separation(G.sum(1), rv)[("a", None)][0])
+
+
+def test_a_paired_design_spreads_each_effects_evidence_over_the_prints_more_than_the_d_design():
+    kw = dict(pool=24, draws=1, seed=2, size=SIZE, progress=False, compare=False)
+    r_d, r_p = D.design_masks(4, criterion="d", **kw), D.design_masks(4, criterion="paired", **kw)
+    params = D.full_params(default_params("eq1"))
+    U, sd = D.design_prior(params, 1, seed=2)
+    rv = D.rivals_of(params, sd)
+    value = {k: float(D.paired(D.discrimination_gram(r["masks"], params, U, rv, seed=2), rv))
+             for k, r in (("d", r_d), ("paired", r_p))}
+    assert value["paired"] > value["d"]
+    assert len(r_p["masks"]) == 4 and len(r_p["design"].separation) == 25
+    assert [row["effect"] for row in r_p["paired"]] == rv.effects and not r_d["paired"]
+
+
+def test_a_paired_design_counts_each_print_already_made(params):
+    """Sequential design: the prints already made enter the paired test print by print,
+    and the design's criterion is that of all of them together."""
+    U, sd = D.design_prior(params, 1, seed=6)
+    rv = D.rivals_of(params, sd)
+    cands = D.candidate_pool(6, seed=7, size=SIZE)
+    F = D.information(cands, params, U)
+    G = D.discrimination_gram(cands, params, U, rv, seed=6)
+    prior = np.diag(1.0 / sd**2)
+    made = [0, 1]  # two prints already made: the first two candidates
+    rest = [i for i in range(6) if i not in made]
+    d = D.greedy(F[:, rest], [list(cands)[i] for i in rest], 2, prior, start=F[:, made].sum(axis=1),
+                 G=G[:, rest], rivals=rv, G_start=G[:, made], kind="paired")
+    idx = made + [list(cands).index(c) for c in d.ids]
+    A = prior[None] + F[:, idx].sum(axis=1)
+    assert d.criterion == pytest.approx(float(D.criterion_d(A) + D.paired(G[:, idx], rv)), rel=1e-9)
+    alone = D.greedy(F[:, rest], [list(cands)[i] for i in rest], 2, prior, start=F[:, made].sum(axis=1),
+                     G=G[:, rest], rivals=rv, kind="paired")
+    assert alone.criterion != pytest.approx(d.criterion, rel=1e-6)
 
 
 def test_separation_counts_the_rivals_prior_precision():

@@ -579,6 +579,51 @@ def discrimination(G: np.ndarray, rivals: Rivals) -> np.ndarray:
     return sum(np.log1p(np.clip(T, 0.0, None)) for T in separation(G, rivals).values()).mean(axis=-1)
 
 
+PAIRED_NOISE = 4.0  # ``paired``: the variance of a print's gain from the noise, per unit of its lack of fit
+
+
+def per_print_lack_of_fit(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> dict:
+    """{effect: (..., S, n) lack of fit of each print}: what the model without the
+    candidate effects (rival None) leaves of the effect's change in each of n prints, its
+    parameters fitted to all of them (``separation``'s T split by print: the prints' T
+    sum to the design's less the rival prior's share, beta' P beta). ``G_prints``: (..., S, n, Q, Q) per print; ``G_sum``: (..., S,
+    Q, Q), the Gram the rival's fit uses (default: the sum over the n prints)."""
+    G_sum = G_prints.sum(axis=-3) if G_sum is None else G_sum
+    cols = list(rivals.base)
+    prec = np.diag(rivals.prior_precision[cols])
+    Gp_rr = G_prints[..., cols, :][..., :, cols]
+    out = {}
+    for e in rivals.effects:
+        q = rivals.column(e)
+        A = G_sum[..., cols, :][..., :, cols] + prec
+        beta = np.linalg.solve(A, G_sum[..., cols, q][..., None])[..., 0]  # (..., S, R)
+        out[e] = (G_prints[..., q, q] - 2.0 * np.einsum("...sr,...snr->...sn", beta, G_prints[..., cols, q])
+                  + np.einsum("...sr,...snrk,...sk->...sn", beta, Gp_rr, beta))
+    return out
+
+
+def paired(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> np.ndarray:
+    """Mean over draws of sum over the candidate effects of log(1 + t), t the paired
+    t-statistic that the diagnosis's acceptance computes over prints, as the design
+    predicts it: with T_i the lack of fit of print i (``per_print_lack_of_fit``), its
+    gain from the effect is T_i with a noise of variance ``PAIRED_NOISE`` T_i, so
+    t = sqrt(n) mean(T) / sqrt(var(T) + PAIRED_NOISE mean(T)). A design whose evidence for
+    an effect sits in one or two prints has a large total lack of fit and a small t: the
+    test over prints sees the other prints gain nothing. (..., S, n, Q, Q) -> (...)."""
+    return sum(np.log1p(t) for t in paired_t(G_prints, rivals, G_sum).values()).mean(axis=-1)
+
+
+def paired_t(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> dict:
+    """{effect: (..., S) the paired t-statistic over prints that ``paired`` predicts}."""
+    n = G_prints.shape[-3]
+    out = {}
+    for e, T in per_print_lack_of_fit(G_prints, rivals, G_sum).items():
+        T = np.clip(T, 0.0, None)
+        m = T.mean(axis=-1)
+        out[e] = np.sqrt(n) * m / np.sqrt(T.var(axis=-1) + PAIRED_NOISE * m + 1e-12)
+    return out
+
+
 def _logdet(A: np.ndarray) -> np.ndarray:
     sign, ld = np.linalg.slogdet(A)
     return np.where(sign > 0, ld, -np.inf)
@@ -615,46 +660,62 @@ class Design:
     names: list  # the parameters
     prior_sd: np.ndarray
     separation: dict = field(default_factory=dict)  # (effect, rival) -> mean T with the chosen masks (``separation``)
+    paired_t: dict = field(default_factory=dict)  # effect -> predicted paired t over the prints (``paired_t``), paired only
 
 
 def greedy(F: np.ndarray, ids: list, count: int, prior_precision: np.ndarray, focus=None, focus_weight: float = 1.0,
            start: np.ndarray | None = None, G: np.ndarray | None = None, rivals: Rivals | None = None,
-           G_start: np.ndarray | None = None) -> Design:
+           G_start: np.ndarray | None = None, kind: str = "discrimination") -> Design:
     """Choose ``count`` masks greedily by the criterion. ``F``: (S, B, K, K) information
     of the candidates; ``prior_precision``: (K, K) or (S, K, K); ``start``: (S, K, K)
     information of prints already made. With ``G`` ((S, B, Q, Q), ``discrimination_gram``)
-    and ``rivals`` the criterion adds ``discrimination`` (``G_start``: the prints already
-    made)."""
+    and ``rivals`` the criterion adds ``discrimination`` (``kind`` "discrimination";
+    ``G_start``: (S, Q, Q), the prints already made) or ``paired`` (``kind`` "paired";
+    ``G_start``: (S, n, Q, Q), each print already made)."""
     S, B, K, _ = F.shape
     A = np.broadcast_to(prior_precision, (S, K, K)).copy()
     if start is not None:
         A = A + start
-    disc = G is not None and rivals is not None and bool(rivals.effects)
-    if disc:
+    extra = G is not None and rivals is not None and bool(rivals.effects)
+    by_print = extra and kind == "paired"
+    if by_print:  # each chosen print's Gram: the paired test is over prints
+        Gacc = np.zeros((S, 0) + G.shape[2:]) if G_start is None else np.asarray(G_start, float)
+    elif extra:
         Gacc = np.zeros((S,) + G.shape[2:]) if G_start is None else G_start.copy()
 
     def value(A_, G_):
-        return criterion_d(A_, focus, focus_weight) + (discrimination(G_, rivals) if disc else 0.0)
+        if not extra:
+            return criterion_d(A_, focus, focus_weight)
+        if by_print:
+            return criterion_d(A_, focus, focus_weight) + (paired(G_, rivals) if G_.shape[-3] else 0.0)
+        return criterion_d(A_, focus, focus_weight) + discrimination(G_, rivals)
 
     chosen, gains = [], []
-    current = float(value(A, Gacc if disc else None))
+    current = float(value(A, Gacc if extra else None))
     free = np.ones(B, bool)
     for _ in range(min(count, B)):
         trial = A[None] + np.swapaxes(F, 0, 1)  # (B, S, K, K)
-        gtrial = Gacc[None] + np.swapaxes(G, 0, 1) if disc else None
+        if by_print:  # (B, S, n + 1, Q, Q)
+            gtrial = np.concatenate([np.broadcast_to(Gacc[None], (B,) + Gacc.shape),
+                                     np.swapaxes(G, 0, 1)[:, :, None]], axis=2)
+        else:
+            gtrial = Gacc[None] + np.swapaxes(G, 0, 1) if extra else None
         val = value(trial, gtrial)
         val[~free] = -np.inf
         b = int(np.argmax(val))
         gains.append(float(val[b] - current))
         current = float(val[b])
         A = trial[b]
-        if disc:
-            Gacc = gtrial[b]
+        if extra:
+            Gacc = np.array(gtrial[b])
         free[b] = False
         chosen.append(ids[b])
     d = Design(chosen, gains, current, posterior_sd(A), [], np.zeros(0))
-    if disc:
-        d.separation = {k: float(v.mean()) for k, v in separation(Gacc, rivals).items()}
+    if extra:
+        d.separation = {k: float(v.mean()) for k, v in separation(Gacc.sum(axis=1) if by_print else Gacc,
+                                                                     rivals).items()}
+    if by_print:
+        d.paired_t = {k: float(v.mean()) for k, v in paired_t(Gacc, rivals).items()}
     return d
 
 
@@ -714,14 +775,16 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
 
         data = load_prints(prints)
         start = information(data.masks, params, U, device=device).sum(axis=1)
-    rivals = rivals_of(params, sd0) if criterion == "discrimination" else None
+    rivals = rivals_of(params, sd0) if criterion in ("discrimination", "paired") else None
     G = G_start = None
     if rivals is not None and rivals.effects:  # none left: D-optimality alone
         G = discrimination_gram(cands, params, U, rivals, seed, device=device)
         if prints:
-            G_start = discrimination_gram(data.masks, params, U, rivals, seed, device=device).sum(axis=1)
+            G_start = discrimination_gram(data.masks, params, U, rivals, seed, device=device)
+            if criterion != "paired":
+                G_start = G_start.sum(axis=1)
     ids = list(cands)
-    d = greedy(F, ids, count, prior_precision, focus, focus_weight, start, G, rivals, G_start)
+    d = greedy(F, ids, count, prior_precision, focus, focus_weight, start, G, rivals, G_start, kind=criterion)
     d.names, d.prior_sd = names, sd0
     table = [dict(id=f"design_{i:03d}", candidate=c, pattern=c.rsplit("_", 1)[0], gain=g)
              for i, (c, g) in enumerate(zip(d.ids, d.gains))]
@@ -730,7 +793,8 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
                     designed_sd=float(d.sd[j] * _unit(params, names)[1][j])) for j, k in enumerate(names)]
     result = dict(masks=out_masks, design=d, table=table, sd=sd_rows, focus=focus_effects, model=params.model,
                   draws=U, criterion=d.criterion, criterion_kind=criterion,
-                  separation=[dict(effect=e, rival=r or "(none)", designed=t) for (e, r), t in d.separation.items()])
+                  separation=[dict(effect=e, rival=r or "(none)", designed=t) for (e, r), t in d.separation.items()],
+                  paired=[dict(effect=e, designed_t=t) for e, t in d.paired_t.items()])
     if compare:  # the paper's random masks, same count, same draws and prior
         paper = M.trial_masks(count, seed=seed, size=size)
         Fp = information(paper, params, U, device=device)
@@ -740,10 +804,18 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
         sdp = posterior_sd(A)
         result["criterion_paper"] = float(criterion_d(A, focus, focus_weight))
         if rivals is not None and rivals.effects:
-            Gp = discrimination_gram(paper, params, U, rivals, seed, device=device).sum(axis=1)
-            if G_start is not None:
-                Gp = Gp + G_start
-            result["criterion_paper"] += float(discrimination(Gp, rivals))
+            Gpp = discrimination_gram(paper, params, U, rivals, seed, device=device)
+            if criterion == "paired":
+                if G_start is not None:
+                    Gpp = np.concatenate([G_start, Gpp], axis=1)
+                Gp = Gpp.sum(axis=1)
+                result["criterion_paper"] += float(paired(Gpp, rivals))
+                tp = paired_t(Gpp, rivals)
+                for row in result["paired"]:
+                    row["paper_t"] = float(tp[row["effect"]].mean())
+            else:
+                Gp = Gpp.sum(axis=1) + (G_start if G_start is not None else 0.0)
+                result["criterion_paper"] += float(discrimination(Gp, rivals))
             Tp = separation(Gp, rivals)
             for row in result["separation"]:
                 row["paper"] = float(Tp[(row["effect"], None if row["rival"] == "(none)" else row["rival"])].mean())
@@ -773,7 +845,8 @@ def write_design(out_dir, result: dict, inputs=()) -> list[Path]:
     """OUT/<id>.png, the masks (a mask folder as ``masks trial`` writes, ready to print), and
     OUT/design/: design.tsv (the chosen candidates and their gains), parameters.tsv
     (predicted parameter sd: prior, designed, random paper masks), separation.tsv (with
-    the discrimination criterion: every effect's lack of fit under every rival),
+    the discrimination or paired criterion: every effect's lack of fit under every rival),
+    paired.tsv (paired: every effect's predicted paired t over the prints),
     design.yaml (criterion, its kind, noise model, model, focus) and design.png (the
     masks, the sd bars and the separations)."""
     from .io import output_dir, write_png, write_tsv, write_yaml
@@ -787,10 +860,15 @@ def write_design(out_dir, result: dict, inputs=()) -> list[Path]:
         write_tsv(info / "parameters.tsv", result["sd"])
         if result.get("separation"):
             write_tsv(info / "separation.tsv", result["separation"])
+        if result.get("paired"):
+            write_tsv(info / "paired.tsv", result["paired"])
+        kind = result.get("criterion_kind", "d")
         sep = bool(result.get("separation"))
         write_yaml(info / "design.yaml", dict(
             criterion="pseudo-Bayesian D-optimality on the print's sensitivity to the parameters (unscatter.design)"
-                      + ("; plus telling the library's effects apart (linearised T-optimality, separation.tsv)"
+                      + ("; plus every effect's evidence spread over the prints (the diagnosis's paired test, "
+                         "paired.tsv)" if sep and kind == "paired" else
+                         "; plus telling the library's effects apart (linearised T-optimality, separation.tsv)"
                          if sep else ""),
             criterion_kind=result.get("criterion_kind", "d"), noise=NOISE,
             model=result["model"], draws=int(len(result["draws"])), focus_effects=list(result["focus"]),

@@ -260,10 +260,12 @@ TRIAL_MASKS = Stage(
                  "sensitivity to the parameters, effects included)."),
     pool=_int(160, "designed: candidate masks to choose from.", lo=1),
     draws=_int(3, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
-    criterion=_choice("d", ("d", "discrimination"),
+    criterion=_choice("d", ("d", "discrimination", "paired"),
                       "designed: d - D-optimal on the parameters, effects included; discrimination - the same plus "
                       "telling the library's effects apart: every effect's print change must stand out from Eq. 1 "
-                      "and from each other effect in its place (linearised T-optimality, unscatter.design.separation)."),
+                      "and from each other effect in its place (linearised T-optimality, unscatter.design.separation); "
+                      "paired - D-optimal plus every effect's evidence spread over the prints, as the diagnosis's "
+                      "paired test over prints needs it (unscatter.design.paired)."),
     fiducials=_bool(True, "designed: three registration marks (solid squares of 40 px at full grey in three corners, "
                     "a cleared band around them) on every designed mask, so that every print's pose rests on them "
                     "whatever the rest of the mask is (unscatter.masks.fiducial_marks)."),
