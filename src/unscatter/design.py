@@ -42,6 +42,12 @@ of the simulated print to the parameters.
   its place), the lack of fit that the rival's best linearised fit leaves (Atkinson &
   Fedorov's T-optimality), summed as log(1 + T) over the pairs. ``separation.tsv``
   reports every pair for the design and for random paper masks.
+- ``criterion="paired"`` adds, for every candidate effect, the paired t-statistic over
+  prints that the diagnosis's acceptance computes, as the design predicts it from each
+  print's share of the effect's lack of fit under the model without it (``paired``): the
+  test over prints refuses an effect whose evidence sits in one or two prints, however
+  large. ``paired.tsv`` reports every effect's predicted t for the design and for random
+  paper masks.
 
 D-optimality (and not A- or E-optimality) because it is invariant to re-scaling each
 parameter, minimises the volume of the parameters' joint confidence region, and its
@@ -586,8 +592,9 @@ def per_print_lack_of_fit(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarra
     """{effect: (..., S, n) lack of fit of each print}: what the model without the
     candidate effects (rival None) leaves of the effect's change in each of n prints, its
     parameters fitted to all of them (``separation``'s T split by print: the prints' T
-    sum to the design's less the rival prior's share, beta' P beta). ``G_prints``: (..., S, n, Q, Q) per print; ``G_sum``: (..., S,
-    Q, Q), the Gram the rival's fit uses (default: the sum over the n prints)."""
+    sum to the design's less the rival prior's share, beta' P beta). ``G_prints``:
+    (..., S, n, Q, Q) per print; ``G_sum``: (..., S, Q, Q), the Gram the rival's fit uses
+    (default: the sum over the n prints)."""
     G_sum = G_prints.sum(axis=-3) if G_sum is None else G_sum
     cols = list(rivals.base)
     prec = np.diag(rivals.prior_precision[cols])
@@ -660,7 +667,7 @@ class Design:
     names: list  # the parameters
     prior_sd: np.ndarray
     separation: dict = field(default_factory=dict)  # (effect, rival) -> mean T with the chosen masks (``separation``)
-    paired_t: dict = field(default_factory=dict)  # effect -> predicted paired t over the prints (``paired_t``), paired only
+    paired_t: dict = field(default_factory=dict)  # paired only: effect -> predicted paired t over the prints
 
 
 def greedy(F: np.ndarray, ids: list, count: int, prior_precision: np.ndarray, focus=None, focus_weight: float = 1.0,
