@@ -571,11 +571,16 @@ def separation(G: np.ndarray, rivals: Rivals) -> dict:
     out = {}
     for e, r, cols in rivals.pairs():
         q = rivals.column(e)
-        prec = np.array([rivals.prior_precision[c] if c < len(rivals.names) else RIVAL_PRECISION for c in cols])
-        A = G[..., cols, :][..., :, cols] + np.diag(prec)
-        b = G[..., cols, q]
-        out[(e, r)] = G[..., q, q] - np.einsum("...i,...i->...", b, np.linalg.solve(A, b[..., None])[..., 0])
+        out[(e, r)] = G[..., q, q] - np.einsum("...i,...i->...", G[..., cols, q], _rival_fit(G, rivals, cols, q))
     return out
+
+
+def _rival_fit(G: np.ndarray, rivals: Rivals, cols: list, q: int) -> np.ndarray:
+    """(..., len(cols)) the rival's linearised fit of the effect column ``q`` from its
+    columns ``cols``, penalised by their prior precision: (G_RR + P_R)^-1 G_Rq."""
+    prec = np.array([rivals.prior_precision[c] if c < len(rivals.names) else RIVAL_PRECISION for c in cols])
+    A = G[..., cols, :][..., :, cols] + np.diag(prec)
+    return np.linalg.solve(A, G[..., cols, q][..., None])[..., 0]
 
 
 def discrimination(G: np.ndarray, rivals: Rivals) -> np.ndarray:
@@ -588,28 +593,25 @@ def discrimination(G: np.ndarray, rivals: Rivals) -> np.ndarray:
 PAIRED_NOISE = 4.0  # ``paired``: the variance of a print's gain from the noise, per unit of its lack of fit
 
 
-def per_print_lack_of_fit(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> dict:
+def per_print_lack_of_fit(G_prints: np.ndarray, rivals: Rivals) -> dict:
     """{effect: (..., S, n) lack of fit of each print}: what the model without the
     candidate effects (rival None) leaves of the effect's change in each of n prints, its
     parameters fitted to all of them (``separation``'s T split by print: the prints' T
     sum to the design's less the rival prior's share, beta' P beta). ``G_prints``:
-    (..., S, n, Q, Q) per print; ``G_sum``: (..., S, Q, Q), the Gram the rival's fit uses
-    (default: the sum over the n prints)."""
-    G_sum = G_prints.sum(axis=-3) if G_sum is None else G_sum
+    (..., S, n, Q, Q) per print."""
+    G_sum = G_prints.sum(axis=-3)
     cols = list(rivals.base)
-    prec = np.diag(rivals.prior_precision[cols])
     Gp_rr = G_prints[..., cols, :][..., :, cols]
     out = {}
     for e in rivals.effects:
         q = rivals.column(e)
-        A = G_sum[..., cols, :][..., :, cols] + prec
-        beta = np.linalg.solve(A, G_sum[..., cols, q][..., None])[..., 0]  # (..., S, R)
+        beta = _rival_fit(G_sum, rivals, cols, q)  # (..., S, R)
         out[e] = (G_prints[..., q, q] - 2.0 * np.einsum("...sr,...snr->...sn", beta, G_prints[..., cols, q])
                   + np.einsum("...sr,...snrk,...sk->...sn", beta, Gp_rr, beta))
     return out
 
 
-def paired(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> np.ndarray:
+def paired(G_prints: np.ndarray, rivals: Rivals) -> np.ndarray:
     """Mean over draws of sum over the candidate effects of log(1 + t), t the paired
     t-statistic that the diagnosis's acceptance computes over prints, as the design
     predicts it: with T_i the lack of fit of print i (``per_print_lack_of_fit``), its
@@ -617,14 +619,14 @@ def paired(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None
     t = sqrt(n) mean(T) / sqrt(var(T) + PAIRED_NOISE mean(T)). A design whose evidence for
     an effect sits in one or two prints has a large total lack of fit and a small t: the
     test over prints sees the other prints gain nothing. (..., S, n, Q, Q) -> (...)."""
-    return sum(np.log1p(t) for t in paired_t(G_prints, rivals, G_sum).values()).mean(axis=-1)
+    return sum(np.log1p(t) for t in paired_t(G_prints, rivals).values()).mean(axis=-1)
 
 
-def paired_t(G_prints: np.ndarray, rivals: Rivals, G_sum: np.ndarray | None = None) -> dict:
+def paired_t(G_prints: np.ndarray, rivals: Rivals) -> dict:
     """{effect: (..., S) the paired t-statistic over prints that ``paired`` predicts}."""
     n = G_prints.shape[-3]
     out = {}
-    for e, T in per_print_lack_of_fit(G_prints, rivals, G_sum).items():
+    for e, T in per_print_lack_of_fit(G_prints, rivals).items():
         T = np.clip(T, 0.0, None)
         m = T.mean(axis=-1)
         out[e] = np.sqrt(n) * m / np.sqrt(T.var(axis=-1) + PAIRED_NOISE * m + 1e-12)
