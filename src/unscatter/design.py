@@ -619,7 +619,12 @@ def paired(G_prints: np.ndarray, rivals: Rivals) -> np.ndarray:
     t = sqrt(n) mean(T) / sqrt(var(T) + PAIRED_NOISE mean(T)). A design whose evidence for
     an effect sits in one or two prints has a large total lack of fit and a small t: the
     test over prints sees the other prints gain nothing. (..., S, n, Q, Q) -> (...)."""
-    return sum(np.log1p(t) for t in paired_t(G_prints, rivals).values()).mean(axis=-1)
+    return _paired_value(paired_t(G_prints, rivals))
+
+
+def _paired_value(t: dict) -> np.ndarray:
+    """``paired`` from its effects' t (``paired_t``)."""
+    return sum(np.log1p(v) for v in t.values()).mean(axis=-1)
 
 
 def paired_t(G_prints: np.ndarray, rivals: Rivals) -> dict:
@@ -818,8 +823,8 @@ def design_masks(count: int, *, model=None, prints=None, pool: int = TRIAL_MASKS
                 if G_start is not None:
                     Gpp = np.concatenate([G_start, Gpp], axis=1)
                 Gp = Gpp.sum(axis=1)
-                result["criterion_paper"] += float(paired(Gpp, rivals))
-                tp = paired_t(Gpp, rivals)
+                tp = paired_t(Gpp, rivals)  # once: ``paired`` of the same prints, from its t
+                result["criterion_paper"] += float(_paired_value(tp))
                 for row in result["paired"]:
                     row["paper_t"] = float(tp[row["effect"]].mean())
             else:
