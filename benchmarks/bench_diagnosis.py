@@ -685,7 +685,8 @@ def main():
                     help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
                          "the prior, seed 0, the workflow's pool, draws and registration marks)")
     ap.add_argument("--criterion", choices=("d", "discrimination", "paired"), default="d",
-                    help="--trial designed: the design's criterion (design.design_masks)")
+                    help="--trial designed: the design's criterion (design.design_masks; d, as the runs in the README "
+                         "before 2026-11-30 had it: unscatter's own default is paired)")
     ap.add_argument("--noise", choices=("edge", "pixel"), default=None,
                     help="--trial designed: the design's model of the print noise (design.NOISE; default: its default)")
     ap.add_argument("--workers", type=int, default=None,

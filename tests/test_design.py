@@ -89,7 +89,7 @@ def test_design_beats_random_paper_masks_on_its_criterion():
 def test_cli_masks_design(tmp_path):
     out = tmp_path / "designed"
     res = CliRunner().invoke(main, ["masks", "design", str(out), "--count", "2", "--pool", "6", "--draws", "1",
-                                    "--size", str(SIZE), "--no-progress"])
+                                    "--size", str(SIZE), "--criterion", "d", "--no-progress"])
     assert res.exit_code == 0, res.output
     masks = list_pngs(out)
     assert list(masks) == ["design_000", "design_001"]
@@ -105,8 +105,9 @@ def test_cli_masks_design(tmp_path):
     rows = read_tsv(tmp_path / "disc" / "design" / "separation.tsv")
     assert len(rows) == 25 and {r["rival"] for r in rows} >= {"(none)", "edge_offset"}
     assert not (tmp_path / "disc" / "design" / "paired.tsv").exists()
+    # the default criterion is paired (trial_masks.criterion)
     res = CliRunner().invoke(main, ["masks", "design", str(tmp_path / "paired"), "--count", "2", "--pool", "6",
-                                    "--draws", "1", "--size", str(SIZE), "--criterion", "paired", "--no-progress"])
+                                    "--draws", "1", "--size", str(SIZE), "--no-progress"])
     assert res.exit_code == 0, res.output
     rows = read_tsv(tmp_path / "paired" / "design" / "paired.tsv")
     assert [r["effect"] for r in rows] == ["heavy_tail", "anisotropy", "dose_nonlinearity", "illumination_field",

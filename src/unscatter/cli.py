@@ -119,10 +119,11 @@ def masks_trial(out_dir, count, seed, size, paper_fiducials):
 @option(S.TRIAL_MASKS, "criterion")
 @click.option("--progress/--no-progress", default=True, show_default=True)
 def masks_design(out_dir, count, model, prints, pool, draws, seed, size, fiducials, criterion, progress):
-    """Trial masks designed to teach the printer model the most (D-optimal; --criterion
-    discrimination to also tell the library's effects apart, paired to spread each effect's
-    evidence over the prints; masks, design.tsv, parameters.tsv with the predicted parameter
-    spread against random paper masks, separation.tsv with discrimination or paired, design.png)."""
+    """Trial masks designed to teach the printer model the most (D-optimal, and by default
+    each library effect's evidence spread over the prints, as the diagnosis's paired test
+    needs it; --criterion d for D-optimality alone, discrimination to tell the library's
+    effects apart instead; masks, design.tsv, parameters.tsv with the predicted parameter
+    spread against random paper masks, separation.tsv and paired.tsv, design.png)."""
     _passive_threads()
     from .design import design_masks, write_design
 

@@ -260,7 +260,7 @@ TRIAL_MASKS = Stage(
                  "sensitivity to the parameters, effects included)."),
     pool=_int(160, "designed: candidate masks to choose from.", lo=1),
     draws=_int(3, "designed: draws of the printer's parameters the design must suit (pseudo-Bayesian design).", lo=1),
-    criterion=_choice("d", ("d", "discrimination", "paired"),
+    criterion=_choice("paired", ("d", "discrimination", "paired"),
                       "designed: d - D-optimal on the parameters, effects included; discrimination - the same plus "
                       "telling the library's effects apart: every effect's print change must stand out from Eq. 1 "
                       "and from each other effect in its place (linearised T-optimality, unscatter.design.separation); "
