@@ -246,6 +246,24 @@ def test_an_image_that_a_speck_could_make_is_not_empty(tmp_path):
     assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
 
 
+def test_a_print_its_batch_cannot_cure_is_empty_not_faint(tmp_path):
+    """Lab 2 of the registration benchmark's seed 1667216247 (a dose gamma of 1.15, a gel
+    dose of 0.57 of T): a cut-off grating and two near-threshold prints cured nothing, and
+    nothing of them images above the threshold; their features, had they cured, would
+    image below it (thin lines under a blur of 1.2 to 1.5 px), so the faint test alone could not
+    call them empty. The batch's template cures their masks to 21 to 35 % of a large
+    block's density at the highest dose of the batch's determined prints, under the 45 %
+    (0.9 of the print level) below which they are `empty` (``template_cure_share``)."""
+    bench = _bench()
+    _, rows = bench.run_lab(2, 1667216247, 32, tmp_path)
+    by = {r["id"]: r for r in rows}
+    for mid in ("grating_cutoff_017", "near_threshold_001", "near_threshold_025"):
+        row = by[mid]
+        assert row["truth_solid"] == 0 and row["status"] == "empty", row
+        assert "template cures its mask" in row["reason"], row
+    assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
+
+
 def test_a_print_that_covers_most_of_its_image_is_not_read_as_background_noise(tmp_path):
     """Lab 6 of the registration benchmark's seed 105045948 (8-bit images of 663 x 642, a
     scatter of 24.8 um): a cut-off grating printed as one block over 58 % of the field.

@@ -778,6 +778,26 @@ def test_thin_lines_image_below_the_level_they_cured_at():
     assert imaged_peak(np.zeros((64, 64), np.uint8), 2.0) == 1.0
 
 
+def test_the_templates_cure_of_a_mask_is_measured_against_a_large_blocks():
+    """``template_cure_share``: a large block at full grey cures as densely as the
+    reference block; thin lines at a low grey, whose scattered dose stays near the gel
+    point, to a small share of it; more dose cures more; below the gel dose, nothing."""
+    from unscatter.imaging.batch import MARGIN, template_cure_share
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(256, MARGIN)
+    x = np.array(PrintTemplate.START)  # sigma 4 px, gel 0.3, k 0.2
+    block = np.zeros((256, 256), np.uint8)
+    block[40:220, 40:220] = 255
+    lines = np.zeros((256, 256), np.uint8)
+    for y in range(60, 200, 12):
+        lines[y:y + 4, 60:200] = 255  # 4 px lines, 8 px gaps
+    assert template_cure_share(tmpl, block, x, 1.0) == pytest.approx(1.0, abs=1e-3)
+    thin = [template_cure_share(tmpl, lines, x, d) for d in (0.8, 1.0, 1.5)]
+    assert 0 < thin[0] < thin[1] < thin[2] and thin[1] < 0.45 < thin[2]
+    assert template_cure_share(tmpl, lines, x, 0.5) == 0.0
+
+
 def test_an_eroding_batchs_thin_lines_image_dimmer_still():
     """Lines 6 px wide lose their peak as erosion thins them and vanish at 3 px; a block
     keeps its peak; no erosion is the bare mask."""

@@ -89,6 +89,9 @@ class Settings:
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
+    empty_cure_share: float = 0.9  # ... unless the batch's template, at the highest dose of its determined prints,
+    # cures its mask nowhere to this share of the print level (relative to a large block's density at that dose):
+    # then it is empty (uncured). inf: never
     template_min_prints: int = 3  # prints whose poses no rival contests, that the template is fitted on again (step
     template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
     stain_sigma_px: float = 16.0  # design px: the scale over which a print's uneven staining is measured (stain_field) ...
@@ -147,6 +150,7 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
         return starts, False
 
 
+HELD_RESCALE = 0.002  # a print held to a scale (step 5c) this far (log) off it is refined from that scale
 FAR_DEG, FAR_SCALE = 5.0, 1.1  # choose_pose: a coarse start this far beyond the searched rotations or scales stops
 SYMMETRY_FACTOR = 2  # choose_pose: the mask's turns onto itself are sought at half resolution (at a quarter, a fine
 # star's spokes merge: a 36-spoke star showed no symmetry and was `ok` two spokes, 77 px, off)
@@ -639,6 +643,25 @@ def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
     if erode > 0:  # a boundary pixel's centre lies 1 px from the nearest unexposed one, its edge 0.5 px
         on = np.clip(cv2.distanceTransform(on.astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) - erode, 0.0, 1.0)
     return float(cv2.GaussianBlur(on.astype(np.float32), (0, 0), max(blur, 0.3)).max())
+
+
+def template_cure_share(tmpl: PrintTemplate, mask: np.ndarray, x, dose: float) -> float:
+    """The highest density the batch's template cures a mask to at ``dose`` (its scattered
+    dose's peak through the cure curve, before the microscope's blur), as a share of the
+    density of a large block (5/8 of the field, full grey) at that dose: what the print
+    level, a share of the batch's dense polymer, is measured against."""
+    n = mask.shape[0]
+    a = (3 * n) // 16
+    block = np.zeros_like(mask)
+    block[a:n - a, a:n - a] = 255
+    gel, k = float(x[1]), max(float(x[2]), 1e-3)
+
+    def cured(m):
+        B = float(tmpl.exposure(tmpl.padded(m), x).max())
+        return 1.0 - np.exp(-max(dose * B - gel, 0.0) / k)
+
+    full = cured(block)
+    return cured(mask) / full if full > 0 else 1.0
 
 
 def speck_peak(area_px: float, blur: float) -> float:
@@ -1222,7 +1245,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         B = exposure_of(mid)
 
         def fit(held_at):  # (log scale, sd) or None
-            f = refine(smooth[mid], ch.fit, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
+            start = ch.fit
+            if held_at is not None and abs(held_at[0] - log_scale(ch.fit.M)) > HELD_RESCALE:
+                # from the held scale, about the mask's centre of mass: refinement moves a
+                # pose by at most 2 px a step, and a print 3 % off a scale of one
+                # magnification (a disc whose size set it) walked all 12 steps toward it
+                cy, cx = (v + MARGIN for v in ndimage.center_of_mass(masks[mid].astype(np.float64)))
+                r = float(np.exp(held_at[0] - log_scale(ch.fit.M)))
+                start = replace(ch.fit, M=(h3(ch.fit.M) @ h3(similarity(0.0, r, (cx, cy), (cx, cy))))[:2])
+            f = refine(smooth[mid], start, full, B, x, s.mode, iters=12, prior=edge_prior if edges else None,
                        scale_prior=held_at)
             # QC asks whether the chosen pose converged; held to a scale, the refit answers for
             # itself: the free fit may not have only because it slid along the scale that its
@@ -1396,7 +1427,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # prints' brightness varies (lamp, stain: ``dimmest``)
     erode = max(0.0, -(centre[0] - edge_sd[0]))
     dim = dimmest([choices[mid].fit.gain for mid in placed_ids], s)
-    empty, faint = set(), {}
+    empty, faint = {}, {}  # id -> reason
+    doses = [choices[mid].fit.dose for mid in placed_ids if np.isfinite(choices[mid].fit.dose)]
+    top_dose = max(doses) if len(doses) >= s.size_min_prints else None  # the empty cure test wants a batch's doses
     for mid, n_above in low.items():
         if dense_as_imaged is not None:  # the threshold the stain's division set (5e), not the one 'low' was judged at
             n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * corr[mid].noise)))
@@ -1411,6 +1444,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         whole = imaged_peak(masks[mid], blur, erode)
         speck = speck_peak(s.min_print_px, blur)
         reach = min(whole, speck)
+        cure = None if top_dose is None else template_cure_share(full, masks[mid], x, top_dose)
+        if cure is not None and cure < s.empty_cure_share * s.level:
+            # nothing images above the threshold, and the batch's own model cures nothing of the
+            # mask to the print level at the batch's highest dose: empty, not merely unseen
+            empty[mid] = (f"no polymer above the batch threshold ({n_above} px), and the batch's template cures its mask "
+                          f"to at most {100 * cure:.1f} % of a large block's density at the highest dose of its "
+                          f"determined prints ({top_dose:.2f}), under {100 * s.empty_cure_share * s.level:.1f} %")
+            continue
         if np.isfinite(thr) and peak >= max(s.faint_fraction * dim * reach * thr, 6 * corr[mid].noise):
             # polymer this bright may have cured at the print level in features that the
             # microscope's blur spreads below the threshold (thin lines, small dots): not
@@ -1424,7 +1465,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                           + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
                           + ": whether it printed cannot be told, and it is not empty")
         else:
-            empty.add(mid)
+            empty[mid] = "no polymer above the batch threshold"
 
 
     # 6. warp, threshold, QC, write
@@ -1441,7 +1482,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             return row, None
         if mid in empty:
             printed = np.zeros((design_px, design_px), bool)
-            row.update(status="empty", reason="no polymer above the batch threshold", solid_fraction=0.0)
+            row.update(status="empty", reason=empty[mid], solid_fraction=0.0)
             write_rgb(out_dir / "overlays" / f"{mid}.png", _overlay(np.zeros(printed.shape), mask, printed, 1.0))
             return row, printed
         if mask.max() == 0:
