@@ -250,8 +250,8 @@ def test_a_print_its_batch_cannot_cure_is_empty_not_faint(tmp_path):
     """Lab 2 of the registration benchmark's seed 1667216247 (a dose gamma of 1.15, a gel
     dose of 0.57 of T): a cut-off grating and two near-threshold prints cured nothing, and
     nothing of them images above the threshold; their features, had they cured, would
-    image below it (thin lines under a blur of 1.2 to 1.5 px), so the faint test alone could not
-    call them empty. The batch's template cures their masks to 21 to 35 % of a large
+    image below it (thin lines under a blur of 1.2 to 1.5 px), so the faint test alone
+    could not call them empty. The batch's template cures their masks to 21 to 35 % of a large
     block's density at the highest dose of the batch's determined prints, under the 45 %
     (0.9 of the print level) below which they are `empty` (``template_cure_share``)."""
     bench = _bench()

@@ -780,8 +780,9 @@ def test_thin_lines_image_below_the_level_they_cured_at():
 
 def test_the_templates_cure_of_a_mask_is_measured_against_a_large_blocks():
     """``template_cure_share``: a large block at full grey cures as densely as the
-    reference block; thin lines at a low grey, whose scattered dose stays near the gel
-    point, to a small share of it; more dose cures more; below the gel dose, nothing."""
+    reference block; lines 4 px wide, whose scattered dose under a kernel of 4 px stays
+    near the gel point, to a small share of it; more dose cures more; below the gel
+    dose, nothing."""
     from unscatter.imaging.batch import MARGIN, template_cure_share
     from unscatter.imaging.template import PrintTemplate
 
