@@ -645,23 +645,29 @@ def imaged_peak(mask: np.ndarray, blur: float, erode: float = 0.0) -> float:
     return float(cv2.GaussianBlur(on.astype(np.float32), (0, 0), max(blur, 0.3)).max())
 
 
-def template_cure_share(tmpl: PrintTemplate, mask: np.ndarray, x, dose: float) -> float:
+def template_cure_share(tmpl: PrintTemplate, mask: np.ndarray, x, dose: float, block_peak: float | None = None) -> float:
     """The highest density the batch's template cures a mask to at ``dose`` (its scattered
-    dose's peak through the cure curve, before the microscope's blur), as a share of the
-    density of a large block (5/8 of the field, full grey) at that dose: what the print
-    level, a share of the batch's dense polymer, is measured against."""
-    n = mask.shape[0]
+    dose's peak through the template's cure curve, before the microscope's blur), as a
+    share of the density of a large block (5/8 of the field, full grey) at that dose: what
+    the print level, a share of the batch's dense polymer, is measured against.
+    ``block_peak``: that block's scattered dose peak (``block_dose_peak``), where the
+    caller has it."""
+    if block_peak is None:
+        block_peak = block_dose_peak(tmpl, mask.shape[0], x)
+
+    def density(peak):
+        return 1.0 - float(PrintTemplate.cured(np.float32(peak), x, dose)[1])
+
+    full = density(block_peak)
+    return density(float(tmpl.exposure(tmpl.padded(mask), x).max())) / full if full > 0 else 1.0
+
+
+def block_dose_peak(tmpl: PrintTemplate, n: int, x) -> float:
+    """The peak scattered dose of a block of 5/8 of an n x n field at full grey."""
     a = (3 * n) // 16
-    block = np.zeros_like(mask)
+    block = np.zeros((n, n), np.uint8)
     block[a:n - a, a:n - a] = 255
-    gel, k = float(x[1]), max(float(x[2]), 1e-3)
-
-    def cured(m):
-        B = float(tmpl.exposure(tmpl.padded(m), x).max())
-        return 1.0 - np.exp(-max(dose * B - gel, 0.0) / k)
-
-    full = cured(block)
-    return cured(mask) / full if full > 0 else 1.0
+    return float(tmpl.exposure(tmpl.padded(block), x).max())
 
 
 def speck_peak(area_px: float, blur: float) -> float:
@@ -1430,6 +1436,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     empty, faint = {}, {}  # id -> reason
     doses = [choices[mid].fit.dose for mid in placed_ids if np.isfinite(choices[mid].fit.dose)]
     top_dose = max(doses) if len(doses) >= s.size_min_prints else None  # the empty cure test wants a batch's doses
+    block_peak = None  # a large block's scattered dose peak (template_cure_share), made once where a print needs it
     for mid, n_above in low.items():
         if dense_as_imaged is not None:  # the threshold the stain's division set (5e), not the one 'low' was judged at
             n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * corr[mid].noise)))
@@ -1441,10 +1448,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         peak = float(smooth[mid].max())
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
         blur = float(np.hypot(x[10], 1.0 / sc))
-        whole = imaged_peak(masks[mid], blur, erode)
-        speck = speck_peak(s.min_print_px, blur)
-        reach = min(whole, speck)
-        cure = None if top_dose is None or n_above else template_cure_share(full, masks[mid], x, top_dose)
+        if top_dose is not None and not n_above and block_peak is None:
+            block_peak = block_dose_peak(full, design_px, x)
+        cure = None if top_dose is None or n_above else template_cure_share(full, masks[mid], x, top_dose, block_peak)
         if cure is not None and cure < s.empty_cure_share * s.level:
             # nothing images above the threshold, and the batch's own model cures nothing of the
             # mask to the print level at the batch's highest dose: empty, not merely unseen (a
@@ -1454,6 +1460,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                           f"to at most {100 * cure:.1f} % of a large block's density at the highest dose of its "
                           f"determined prints ({top_dose:.2f}), under {100 * s.empty_cure_share * s.level:.1f} %")
             continue
+        whole = imaged_peak(masks[mid], blur, erode)
+        speck = speck_peak(s.min_print_px, blur)
+        reach = min(whole, speck)
         if np.isfinite(thr) and peak >= max(s.faint_fraction * dim * reach * thr, 6 * corr[mid].noise):
             # polymer this bright may have cured at the print level in features that the
             # microscope's blur spreads below the threshold (thin lines, small dots): not
