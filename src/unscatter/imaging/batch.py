@@ -1448,9 +1448,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         peak = float(smooth[mid].max())
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
         blur = float(np.hypot(x[10], 1.0 / sc))
-        if top_dose is not None and not n_above and block_peak is None:
-            block_peak = block_dose_peak(full, design_px, x)
-        cure = None if top_dose is None or n_above else template_cure_share(full, masks[mid], x, top_dose, block_peak)
+        cure = None
+        if top_dose is not None and not n_above:  # nothing above the threshold: may the batch's template cure it?
+            block_peak = block_dose_peak(full, design_px, x) if block_peak is None else block_peak
+            cure = template_cure_share(full, masks[mid], x, top_dose, block_peak)
         if cure is not None and cure < s.empty_cure_share * s.level:
             # nothing images above the threshold, and the batch's own model cures nothing of the
             # mask to the print level at the batch's highest dose: empty, not merely unseen (a
