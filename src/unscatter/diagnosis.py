@@ -212,6 +212,10 @@ class _Context:
         return self._objs[f]
 
     def fit(self, start: dict, idx, seed: int, s: dict, known: set, desc: str) -> dict:
+        """``fit_own``'s values alone."""
+        return self.fit_own(start, idx, seed, s, known, desc)[0]
+
+    def fit_own(self, start: dict, idx, seed: int, s: dict, known: set, desc: str) -> tuple[dict, dict]:
         """Fit on prints ``idx`` from ``start``. Parameters not in ``known`` (a candidate
         effect's) get a multi-start first: ``starts`` points spread over their bounds
         (scrambled Sobol), each with the others at ``start``, each refined by a short
@@ -219,7 +223,10 @@ class _Context:
         becomes the centre. Then the GA in a box (+- span around the centre's known
         parameters, full bounds for the others) with the centre and ``start`` in its
         population, then the refinement; kept only where they lower the objective on
-        the training prints."""
+        the training prints. Returns those values and the refinement's own optimum
+        (``fitting.Fit.refined_values``: the values themselves without refinement), which
+        ``fold_spread`` takes: a fold's start is the fit on all prints (or the fold fit of
+        a model that was), and the values kept are often that start itself."""
         p = self.params.with_values(**{k: start[k] for k in self.params.values})
         full = Space(p)
         cache: dict[int, Objective] = {}
@@ -253,7 +260,8 @@ class _Context:
         key = _start_key(idx, start) + (f_check,)
         if key not in starts:
             starts[key] = float(obj(f_check).hard(self.model.theta(start, self.device))[0])
-        return fit.values if fit.objective <= starts[key] else dict(start)
+        own = dict(fit.refined_values if fit.refined_values is not None else fit.values)
+        return (fit.values if fit.objective <= starts[key] else dict(start)), own
 
     def _multistart(self, full: Space, objective: Objective, start: dict, new: list, seed: int, s: dict) -> dict:
         """The best of ``start`` and ``s['starts']`` refined starts spread over the bounds
@@ -323,6 +331,7 @@ class Heldout:
     error: np.ndarray  # (B,) held-out mismatch per print
     seconds: float
     values: dict = field(default_factory=dict)  # the full-data fit (set for selected models)
+    fold_own: list | None = None  # each fold's refinement optimum (``_Context.fit_own``), for ``fold_spread``
 
 
 def _folds(n: int, k: int, seed: int) -> list:
@@ -335,23 +344,26 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
     data = ctx.data
     B = len(data)
     sims = np.zeros(data.prints.shape, bool)
-    values = []
+    values, own = [], []
     for i, test in enumerate(folds):
         train = np.setdiff1d(np.arange(B), test)
-        v = ctx.fit(starts[i], train, seed + 101 * i, s, known, f"{desc} fold {i}")
+        v, o = ctx.fit_own(starts[i], train, seed + 101 * i, s, known, f"{desc} fold {i}")
         values.append(v)
+        own.append(o)
         sims[test] = ctx.predict(v, test)
         if bar is not None:
             bar.update(1)
     return _as_heldout(ctx.params.model, values, sims, data.prints, ctx.objective, ctx.area_floor, ctx.weights,
-                       time.perf_counter() - t0)
+                       time.perf_counter() - t0, own)
 
 
 def _as_heldout(model: str, values: list, sims: np.ndarray, prints: np.ndarray, objective: str, area_floor: float,
-                weights: np.ndarray, seconds: float) -> Heldout:
-    """The k fold fits' values and held-out predictions as a ``Heldout`` (per-print error)."""
+                weights: np.ndarray, seconds: float, own: list | None = None) -> Heldout:
+    """The k fold fits' values and held-out predictions as a ``Heldout`` (per-print error);
+    ``own``: each fold's refinement optimum."""
     _, effects = split_model_name(model)
-    return Heldout(model, effects, values, sims, per_print_error(sims, prints, objective, area_floor, weights), seconds)
+    return Heldout(model, effects, values, sims, per_print_error(sims, prints, objective, area_floor, weights), seconds,
+                   fold_own=own)
 
 
 @dataclass
@@ -405,8 +417,8 @@ def _worker_fit(key: tuple, params: Params, start: dict, train, test, seed: int,
         w["ctx"] = (key, _Context(params, w["data"], w["device"], w["s"], {} if private else w["shared"], keep=True))
     ctx = w["ctx"][1]
     t0 = time.perf_counter()
-    v = ctx.fit(start, train, seed, w["s"], known, desc)
-    return v, (None if test is None else ctx.predict(v, test)), time.perf_counter() - t0
+    v, own = ctx.fit_own(start, train, seed, w["s"], known, desc)
+    return v, (None if test is None else ctx.predict(v, test)), time.perf_counter() - t0, own
 
 
 def _worker_folds(key: tuple, params: Params, folds: list, known: set) -> list:
@@ -524,7 +536,8 @@ class _Fits:
                 sims[test] = done[j, i][1]
             out.append(_as_heldout(job.params.model, [done[j, i][0] for i in range(len(folds))], sims, self.data.prints,
                                    self.s["objective"], self.s["area_floor"], self.weights,
-                                   float(sum(done[j, i][2] for i in range(len(folds))))))
+                                   float(sum(done[j, i][2] for i in range(len(folds)))),
+                                   [done[j, i][3] for i in range(len(folds))]))
         return out
 
     def fit(self, params: Params, start: dict, seed: int, known: set, desc: str) -> dict:
@@ -545,6 +558,25 @@ def fold_spread(fold_values: list, names) -> dict:
     for n in names:
         v = np.array([fv[n] for fv in fold_values], float)
         out[n] = float(math.sqrt((k - 1) / k * np.sum((v - v.mean()) ** 2)))
+    return out
+
+
+def on_bounds(fold_values: list, values: dict, bounds: dict, names) -> dict:
+    """The parameters whose fit, or any of whose fold fits, lies on a bound of the search
+    (within 0.5 % of its range, as the calibration flags a fit): name -> "lower" or
+    "upper". A fold fit stopped there says nothing of how far the data would take it, so
+    the fold spread of such a parameter (and of those it trades against) is too small:
+    the fold fits of a heavy tail whose length the prints do not pin down piled up at its
+    40 px bound (README, "Fits that reach the optimum")."""
+    out = {}
+    for n in names:
+        lo, hi = bounds[n]
+        tol = 5e-3 * (hi - lo)
+        v = np.array([values[n], *(fv[n] for fv in fold_values)], float)
+        if (v <= lo + tol).any():
+            out[n] = "lower"
+        elif (v >= hi - tol).any():
+            out[n] = "upper"
     return out
 
 
@@ -1254,9 +1286,16 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     if cur is not base_ho:
         stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
     final = cur_params if cur is not base_ho else base
-    spread = fold_spread(cur.fold_values, final.free)
+    own = cur.fold_own or cur.fold_values
+    spread = fold_spread(own, final.free)
+    bounded = on_bounds(own, final.values, final.bounds, final.free)
+    for k, side in bounded.items():
+        log.warning("%s = %.4g: the fit or a fold fit lies on its %s bound %s, so its spread (%.3g) is too small: the "
+                    "prints do not bound it there", k, final.values[k], side, tuple(final.bounds[k]), spread[k])
+    extras = {k: {"std": v, "std_method": SPREAD, **({"on_bound": bounded[k]} if k in bounded else {})}
+              for k, v in spread.items()}
     final = Params(final.model, dict(final.values), dict(final.bounds), tuple(final.fixed), final.pixel_size_um,
-                   {**final.info, "parameter_extras": {k: {"std": v, "std_method": SPREAD} for k, v in spread.items()}})
+                   {**final.info, "parameter_extras": extras})
 
     # -- outputs -----------------------------------------------------------------------
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -1349,8 +1388,10 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     lines += ["", f"## Parameters of `{final.model}`", "", "| parameter | value | std (jackknife over folds) | unit |",
               "|---|---|---|---|"]
     model = get_model(final.model)
+    bounded = {k: e["on_bound"] for k, e in final.info.get("parameter_extras", {}).items() if "on_bound" in e}
     for name in final.free:
-        lines.append(f"| {name} | {final.values[name]:.4g} | {spread.get(name, float('nan')):.2g} | {model.specs[name].unit} |")
+        note = f" (fold fits on its {bounded[name]} bound: too small)" if name in bounded else ""
+        lines.append(f"| {name} | {final.values[name]:.4g} | {spread.get(name, float('nan')):.2g}{note} | {model.specs[name].unit} |")
     lines += ["", "## Candidates", "", "| round | candidate | held-out mismatch | improvement | 95 % CI | t-test p | accepted | selected |",
               "|---|---|---|---|---|---|---|---|"]
     for r in ranking:

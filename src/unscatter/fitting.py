@@ -424,6 +424,10 @@ class Fit:
     refined: bool  # refinement kept
     history: list
     factors: dict  # decimation factors used: ga, refine, check
+    # the refinement's own optimum: the end of the temperature with the lowest hard objective, whether or not it beats
+    # the GA's best (None without refinement). The GA's population holds the start, so where the start is the fit on a
+    # superset of these prints, ``values`` is often that start itself (``diagnosis.fold_spread``)
+    refined_values: dict | None = None
 
 
 def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: int, device, seed: int, s: dict,
@@ -447,7 +451,7 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
         f_ga = f_ok
     check = obj(min(f_check, band_factor(sim, model, best, f_check)))
     f_best = float(check.hard(model.theta(best, device))[0])
-    values, f, kept = best, f_best, False
+    values, f, kept, own = best, f_best, False, None
     factors = dict(ga=f_ga, check=min(f_check, band_factor(sim, model, best, f_check)))
     if f_ref is not None:
         f_ref = band_factor(sim, model, best, f_ref)
@@ -456,9 +460,10 @@ def fit_params(space: Space, model, obj, f_ga: int, f_ref: int | None, f_check: 
                       tol=s.get("refine_tol"), endpoints=True)
         scores = hard_scores(check, model, ends, device)
         i = int(np.argmin(scores))
+        own = ends[i]
         if scores[i] < f_best:  # the refinement is kept only if the hard objective improves
             values, f, kept = ends[i], float(scores[i]), True
-    return Fit(values, f, f_best, kept, hist if history else [], factors)
+    return Fit(values, f, f_best, kept, hist if history else [], factors, own)
 
 
 
