@@ -1390,7 +1390,7 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     model = get_model(final.model)
     bounded = {k: e["on_bound"] for k, e in final.info.get("parameter_extras", {}).items() if "on_bound" in e}
     for name in final.free:
-        note = f" (fold fits on its {bounded[name]} bound: too small)" if name in bounded else ""
+        note = f" (on its {bounded[name]} bound, the fit or a fold fit: too small)" if name in bounded else ""
         lines.append(f"| {name} | {final.values[name]:.4g} | {spread.get(name, float('nan')):.2g}{note} | {model.specs[name].unit} |")
     lines += ["", "## Candidates", "", "| round | candidate | held-out mismatch | improvement | 95 % CI | t-test p | accepted | selected |",
               "|---|---|---|---|---|---|---|---|"]
