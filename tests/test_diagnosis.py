@@ -17,7 +17,8 @@ from click.testing import CliRunner
 
 from unscatter import metrics
 from unscatter.calibration import calibrate
-from unscatter.diagnosis import DEFAULTS, accepted, diagnose, fold_spread, on_bounds, paired_bootstrap, structure_test
+from unscatter.diagnosis import DEFAULTS, accepted, diagnose, fold_spread, paired_bootstrap, structure_test
+from unscatter.fitting import on_bounds
 from unscatter.io import read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
 from unscatter.model import (
@@ -272,9 +273,9 @@ def test_fold_spread_is_the_grouped_jackknife():
 def test_a_parameter_whose_fit_or_fold_fits_reach_a_bound_is_flagged():
     bounds = {"a": (0.0, 1.0), "b": (2.0, 40.0)}
     folds = [dict(a=0.5, b=38.0), dict(a=0.6, b=40.0), dict(a=0.55, b=39.9)]
-    assert on_bounds(folds, dict(a=0.55, b=39.5), bounds, ["a", "b"]) == {"b": "upper"}
-    assert on_bounds(folds[:1], dict(a=0.004, b=20.0), bounds, ["a", "b"]) == {"a": "lower"}
-    assert on_bounds(folds[:1], dict(a=0.5, b=20.0), bounds, ["a", "b"]) == {}
+    assert on_bounds([dict(a=0.55, b=39.5), *folds], bounds, ["a", "b"]) == {"b": "upper"}
+    assert on_bounds([dict(a=0.004, b=20.0), *folds[:1]], bounds, ["a", "b"]) == {"a": "lower"}
+    assert on_bounds([dict(a=0.5, b=20.0), *folds[:1]], bounds, ["a", "b"]) == {}
 
 
 class _Prints(SimpleNamespace):

@@ -71,6 +71,7 @@ from .fitting import (
     fit_params,
     grid_factor,
     hard_scores,
+    on_bounds,
     refine,
     residual_rgb,
 )
@@ -250,14 +251,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         log.info("measurement blur %.3f px (profile objective %.6g)", values[BLUR], profile_best)
 
     # -- fits on a bound --------------------------------------------------------
-    on_bound = {}
-    for k in space.names:
-        lo, hi = params.bounds[k]
-        tol = 5e-3 * (hi - lo)
-        if values[k] <= lo + tol:
-            on_bound[k] = "lower"
-        elif values[k] >= hi - tol:
-            on_bound[k] = "upper"
+    on_bound = on_bounds([values], params.bounds, space.names)
     for k, side in on_bound.items():
         msg = (f"{k} = {values[k]:.4g} is on its {side} bound {params.bounds[k]}: the bounds likely exclude the data's "
                f"optimum; widen them (setting 'bounds') and recalibrate")

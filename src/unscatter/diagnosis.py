@@ -84,6 +84,7 @@ from .fitting import (
     grid_factor,
     hard_scores,
     mask_heldout,
+    on_bounds,
     per_print_error,
     print_weights,
     refine,
@@ -358,7 +359,7 @@ def _heldout(ctx: _Context, starts: list, folds: list, s: dict, known: set, seed
 
 
 def _as_heldout(model: str, values: list, sims: np.ndarray, prints: np.ndarray, objective: str, area_floor: float,
-                weights: np.ndarray, seconds: float, own: list | None = None) -> Heldout:
+                weights: np.ndarray, seconds: float, own: list) -> Heldout:
     """The k fold fits' values and held-out predictions as a ``Heldout`` (per-print error);
     ``own``: each fold's refinement optimum."""
     _, effects = split_model_name(model)
@@ -558,25 +559,6 @@ def fold_spread(fold_values: list, names) -> dict:
     for n in names:
         v = np.array([fv[n] for fv in fold_values], float)
         out[n] = float(math.sqrt((k - 1) / k * np.sum((v - v.mean()) ** 2)))
-    return out
-
-
-def on_bounds(fold_values: list, values: dict, bounds: dict, names) -> dict:
-    """The parameters whose fit, or any of whose fold fits, lies on a bound of the search
-    (within 0.5 % of its range, as the calibration flags a fit): name -> "lower" or
-    "upper". A fold fit stopped there says nothing of how far the data would take it, so
-    the fold spread of such a parameter (and of those it trades against) is too small:
-    the fold fits of a heavy tail whose length the prints do not pin down piled up at its
-    40 px bound (README, "Fits that reach the optimum")."""
-    out = {}
-    for n in names:
-        lo, hi = bounds[n]
-        tol = 5e-3 * (hi - lo)
-        v = np.array([values[n], *(fv[n] for fv in fold_values)], float)
-        if (v <= lo + tol).any():
-            out[n] = "lower"
-        elif (v >= hi - tol).any():
-            out[n] = "upper"
     return out
 
 
@@ -1286,9 +1268,10 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     if cur is not base_ho:
         stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
     final = cur_params if cur is not base_ho else base
-    own = cur.fold_own or cur.fold_values
-    spread = fold_spread(own, final.free)
-    bounded = on_bounds(own, final.values, final.bounds, final.free)
+    spread = fold_spread(cur.fold_own, final.free)
+    # a fold fit stopped on a bound says nothing of how far the prints would take it: the
+    # spread of such a parameter (and of those it trades against) is too small
+    bounded = on_bounds([final.values, *cur.fold_own], final.bounds, final.free)
     for k, side in bounded.items():
         log.warning("%s = %.4g: the fit or a fold fit lies on its %s bound %s, so its spread (%.3g) is too small: the "
                     "prints do not bound it there", k, final.values[k], side, tuple(final.bounds[k]), spread[k])

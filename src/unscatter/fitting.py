@@ -413,6 +413,27 @@ def hard_scores(objective: Objective, model, values: list, device) -> np.ndarray
     return objective.hard(model.theta({k: np.array([v[k] for v in values]) for k in values[0]}, device))
 
 
+BOUND_TOL = 5e-3  # a value within this share of its range of a bound is on it (``on_bounds``)
+
+
+def on_bounds(value_sets: list, bounds: dict, names) -> dict:
+    """The parameters of which any of ``value_sets`` (dicts) lies on a bound of the search,
+    within ``BOUND_TOL`` of its range: name -> "lower" or "upper". The calibration flags its
+    fit so; the diagnosis its fit and its fold fits, whose spread a bound cuts short
+    (``diagnosis.fold_spread``: the fold fits of a heavy tail whose length the prints do
+    not pin down piled up at its 40 px bound; README, "Fits that reach the optimum")."""
+    out = {}
+    for n in names:
+        lo, hi = bounds[n]
+        tol = BOUND_TOL * (hi - lo)
+        v = np.array([vs[n] for vs in value_sets], float)
+        if (v <= lo + tol).any():
+            out[n] = "lower"
+        elif (v >= hi - tol).any():
+            out[n] = "upper"
+    return out
+
+
 # ------------------------------------------------------------------------ one fit
 
 
