@@ -627,6 +627,70 @@ def test_refinement_keeps_kernel_parameters_inside_the_padding():
     assert min(v["aniso_ratio"] for v in seen) >= pa.bounds["aniso_ratio"][0] - 1e-4
 
 
+def test_an_ellipse_s_angle_wraps_instead_of_stopping_at_a_bound():
+    """An elliptical kernel repeats every 180 deg of its angle. With the angle bounded to
+    -45..45 deg (and the ratio either side of 1), a fold fit whose ellipse lay near 45 deg
+    stopped on the bound, cut off from the same kernel a step away (bench_fit_recovery seed
+    607314319, case 6: a fold fit at -45 deg, the angle's spread 55 deg, the candidate's
+    held-out error 13.5 % above the truth's). Now the angle runs -90..90 deg and wraps: the
+    refinement crosses +-90, the spread and the mean are taken across it, and it is never
+    flagged on a bound. The ratio still runs either side of 1, so that a fit can pass
+    through a round kernel; ``canonical`` writes each kernel once."""
+    from unscatter.fitting import Space, on_bounds, refine
+    from unscatter.model import canonical, periods
+
+    pa = extend_params(default_params("eq1"), ["anisotropy"])
+    assert periods(pa) == {"aniso_angle_deg": 180.0}
+    space = Space(pa)
+    i = space.names.index("aniso_angle_deg")
+    g = space.encode(pa.values | dict(aniso_angle_deg=100.0))
+    assert g[i] == pytest.approx((-80.0 + 90.0) / 180.0)  # 100 deg is -80 deg
+    g[i] = 1.25
+    assert space.decode(g)["aniso_angle_deg"][0] == pytest.approx(-45.0)  # wrapped, not clipped to 90
+
+    class Towards85:  # a kernel whose best angle is 85 deg, started at -85 deg: 10 deg away across the wrap
+        def smooth(self, theta, temperature):
+            a = theta["aniso_angle_deg"] * (np.pi / 180)
+            return 1 - torch.cos(2 * (a - np.radians(85.0))) + 0 * theta["aniso_ratio"]
+
+    end = refine(space, Towards85(), get_model(pa.model), pa.values | dict(aniso_angle_deg=-85.0, aniso_ratio=1.5), CPU,
+                 (0.1,), 20)
+    assert end["aniso_angle_deg"] == pytest.approx(85.0, abs=0.5)
+    # bounded as before, it stops on the bound at -90 deg
+    narrow = pa.with_values()
+    narrow.bounds["aniso_angle_deg"] = (-90.0, 0.0)
+    assert periods(narrow) == {}
+    end = refine(Space(narrow), Towards85(), get_model(pa.model), pa.values | dict(aniso_angle_deg=-85.0, aniso_ratio=1.5),
+                 CPU, (0.1,), 20)
+    assert end["aniso_angle_deg"] == pytest.approx(-90.0, abs=1e-3)
+
+    class Across:  # the kernel's second moments against those of a ratio of 1.5 at 80 deg, started 90 deg off
+        def smooth(self, theta, temperature):
+            r, a = theta["aniso_ratio"], theta["aniso_angle_deg"] * (np.pi / 180)
+
+            def moments(r, a):
+                c, s = torch.cos(a), torch.sin(a)
+                return torch.stack([r * c * c + s * s / r, (r - 1 / r) * c * s, r * s * s + c * c / r])
+
+            target = moments(torch.tensor([1.5]), torch.tensor([np.radians(80.0)], dtype=torch.float32))
+            return ((moments(r, a) - target) ** 2).sum(0)
+
+    # the ratio passes through 1 (a round kernel) to the other writing of the same kernel, 1 / 1.5 at -10 deg (with
+    # the ratio bounded at 1, a fold fit of bench_fit_recovery seed 20261201's case 2 stopped there, round)
+    end = canonical(refine(space, Across(), get_model(pa.model), pa.values | dict(aniso_angle_deg=-10.0, aniso_ratio=1.5),
+                           CPU, (0.1,), 30))
+    assert end["aniso_ratio"] == pytest.approx(1.5, abs=0.01) and end["aniso_angle_deg"] == pytest.approx(80.0, abs=0.5)
+    assert canonical(dict(aniso_ratio=0.5, aniso_angle_deg=30.0)) == dict(aniso_ratio=2.0, aniso_angle_deg=-60.0)
+
+    folds = [dict(aniso_angle_deg=a) for a in (89.5, -89.0, 88.0, -87.5)]
+    s = fold_spread(folds, ["aniso_angle_deg"], periods(pa))["aniso_angle_deg"]
+    unrolled = [dict(aniso_angle_deg=a) for a in (89.5, 91.0, 88.0, 92.5)]  # the same angles, 1 to 4 deg apart
+    assert s == pytest.approx(fold_spread(unrolled, ["aniso_angle_deg"])["aniso_angle_deg"])
+    assert fold_spread(folds, ["aniso_angle_deg"])["aniso_angle_deg"] > 80  # not 180 deg apart
+    assert on_bounds(folds, pa.bounds, ["aniso_angle_deg"], periods(pa)) == {}
+    assert on_bounds(folds, pa.bounds, ["aniso_angle_deg"]) == {"aniso_angle_deg": "upper"}
+
+
 def _bench_fit_recovery():
     import importlib.util
     import sys

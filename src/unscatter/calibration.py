@@ -87,6 +87,7 @@ from .model import (
     default_params,
     get_model,
     masks_to_tensor,
+    periods,
     save_params,
 )
 
@@ -251,7 +252,7 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
         log.info("measurement blur %.3f px (profile objective %.6g)", values[BLUR], profile_best)
 
     # -- fits on a bound --------------------------------------------------------
-    on_bound = on_bounds([values], params.bounds, space.names)
+    on_bound = on_bounds([values], params.bounds, space.names, periods(params))
     for k, side in on_bound.items():
         msg = (f"{k} = {values[k]:.4g} is on its {side} bound {params.bounds[k]}: the bounds likely exclude the data's "
                f"optimum; widen them (setting 'bounds') and recalibrate")

@@ -104,9 +104,12 @@ from .model import (
     keep_freed_memory,
     load_params,
     masks_to_tensor,
+    canonical,
     params_path,
+    periods,
     save_params,
     split_model_name,
+    unwrapped,
 )
 from .prints import load_prints
 from .settings import DIAGNOSIS
@@ -245,7 +248,7 @@ class _Context:
             centre = self._multistart(full, obj(f_ga), start, new, seed, s)
         lo, hi = full.lo.copy(), full.hi.copy()
         for i, k in enumerate(full.names):
-            if k in known:
+            if k in known and not full.wraps[i]:  # an angle is searched all round: its box would cut it at the wrap
                 r = s["span"] * (hi[i] - lo[i])
                 c = min(max(centre[k], lo[i]), hi[i])
                 lo[i], hi[i] = max(lo[i], c - r), min(hi[i], c + r)
@@ -549,15 +552,19 @@ class _Fits:
 SPREAD = "grouped jackknife over the k fold fits: sqrt((k - 1) / k * sum (fold value - mean)^2)"
 
 
-def fold_spread(fold_values: list, names) -> dict:
+def fold_spread(fold_values: list, names, wrap: dict | None = None) -> dict:
     """Standard error of each parameter from the k fold fits (each without one group of
-    prints): the delete-a-group jackknife, sqrt((k - 1) / k * sum_i (v_i - mean)^2)."""
+    prints): the delete-a-group jackknife, sqrt((k - 1) / k * sum_i (v_i - mean)^2).
+    A parameter in ``wrap`` (name -> period, ``model.periods``: an angle) is taken across
+    its wrap (fold fits at 89 and -89 deg are 2 deg apart)."""
     k = len(fold_values)
     if k < 2:
         return {n: float("nan") for n in names}
     out = {}
     for n in names:
-        v = np.array([fv[n] for fv in fold_values], float)
+        per = (wrap or {}).get(n)
+        v = unwrapped([fv[n] for fv in fold_values], per)
+        v = unwrapped(v, per, float(np.median(v)))
         out[n] = float(math.sqrt((k - 1) / k * np.sum((v - v.mean()) ** 2)))
     return out
 
@@ -1205,7 +1212,11 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
             ok = accepted(stats, s)
             results[c] = (p, ho, stats, ok)
             effect_keys = [sp.name for sp in EFFECTS[c].params]
-            fold_mean = {k: float(np.mean([v[k] for v in ho.fold_values])) for k in effect_keys}
+            wrap = periods(p)  # an angle's mean across its wrap (each kernel written once), back in its bounds
+            written = [canonical(v) if "aniso_angle_deg" in wrap else v for v in ho.fold_values]
+            fold_mean = {k: float(np.mean(unwrapped([v[k] for v in written], wrap.get(k)))) for k in effect_keys}
+            fold_mean = {k: (float(unwrapped([m], wrap[k], sum(p.bounds[k]) / 2)[0]) if k in wrap else m)
+                         for k, m in fold_mean.items()}
             ranking.append(dict(round=rnd, candidate=c, model=p.model, heldout_mismatch=float(ho.error.mean()),
                                 current_mismatch=float(cur.error.mean()), improvement=stats["improvement"],
                                 relative_improvement=stats["relative"], ci_lo=stats["ci_lo"], ci_hi=stats["ci_hi"],
@@ -1268,10 +1279,16 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     if cur is not base_ho:
         stats_final = paired_bootstrap(base_ho.error, cur.error, s["bootstrap"], seed + 99)
     final = cur_params if cur is not base_ho else base
-    spread = fold_spread(cur.fold_own, final.free)
+    # an elliptical kernel written once (its long axis along the angle, ``canonical``): fold fits may
+    # have ended at either of its two writings
+    wrap = periods(final)
+    once = canonical if "aniso_angle_deg" in wrap else dict  # bounds of an older params file: as they are
+    final = final.with_values(**once(final.values))
+    own = [once(v) for v in cur.fold_own]
+    spread = fold_spread(own, final.free, wrap)
     # a fold fit stopped on a bound says nothing of how far the prints would take it: the
     # spread of such a parameter (and of those it trades against) is too small
-    bounded = on_bounds([final.values, *cur.fold_own], final.bounds, final.free)
+    bounded = on_bounds([final.values, *own], final.bounds, final.free, wrap)
     for k, side in bounded.items():
         log.warning("%s = %.4g: the fit or a fold fit lies on its %s bound %s, so its spread (%.3g) is too small: the "
                     "prints do not bound it there", k, final.values[k], side, tuple(final.bounds[k]), spread[k])

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from . import metrics
-from .model import FixedMasks, Params, keep_freed_memory
+from .model import FixedMasks, Params, canonical, keep_freed_memory, periods, unwrapped
 
 log = logging.getLogger(__name__)
 
@@ -247,32 +247,49 @@ class Objective:
 
 
 class Space:
-    """The free parameters scaled to the unit box [0, 1]^d (the GA's genome)."""
+    """The free parameters scaled to the unit box [0, 1]^d (the GA's genome).
+
+    A parameter that repeats itself (``model.periods``: an ellipse's angle) has no bound
+    a search need stop at: where the box spans its period, a coordinate beyond [0, 1]
+    is wrapped into it rather than clipped, and a value is encoded as its repeat nearest
+    the box's centre."""
 
     def __init__(self, params: Params, lower=None, upper=None):
         self.params = params
         self.names = params.free
         self.lo = np.array([params.bounds[k][0] for k in self.names]) if lower is None else np.asarray(lower, float)
         self.hi = np.array([params.bounds[k][1] for k in self.names]) if upper is None else np.asarray(upper, float)
+        per = periods(params)
+        self.period = np.array([per.get(k, 0.0) for k in self.names])  # 0: not periodic
+        # the coordinates that wrap: the box spans a whole period
+        self.wraps = (self.period > 0) & (np.abs((self.hi - self.lo) - self.period) <= 1e-9 * np.maximum(self.period, 1))
 
     def decode(self, g) -> dict:
         g = np.atleast_2d(np.asarray(g, float))
-        v = self.lo + np.clip(g, 0, 1) * (self.hi - self.lo)
+        g = np.where(self.wraps, np.mod(g, 1.0), np.clip(g, 0, 1))
+        v = self.lo + g * (self.hi - self.lo)
         out = {k: np.full(len(g), float(x)) for k, x in self.params.values.items()}
         for i, k in enumerate(self.names):
             out[k] = v[:, i]
         return out
 
     def encode(self, values: dict) -> np.ndarray:
-        return np.array([(values[k] - lo) / (hi - lo) for k, lo, hi in zip(self.names, self.lo, self.hi)])
+        v = np.array([float(values[k]) for k in self.names])
+        centre = 0.5 * (self.lo + self.hi)
+        per = np.where(self.period > 0, self.period, 1.0)
+        v = np.where(self.period > 0, v - per * np.round((v - centre) / per), v)
+        return (v - self.lo) / (self.hi - self.lo)
 
     def around(self, values: dict, span: float) -> Space:
-        """A box of +- span x (full range) around ``values``, inside the full bounds."""
+        """A box of +- span x (full range) around ``values``, inside the full bounds (the
+        whole period for a parameter that wraps)."""
         full_lo = np.array([self.params.bounds[k][0] for k in self.names])
         full_hi = np.array([self.params.bounds[k][1] for k in self.names])
         c = np.array([values[k] for k in self.names])
         r = span * (full_hi - full_lo)
-        return Space(self.params, np.maximum(full_lo, c - r), np.minimum(full_hi, c + r))
+        lo, hi = np.maximum(full_lo, c - r), np.minimum(full_hi, c + r)
+        full = Space(self.params)
+        return Space(self.params, np.where(full.wraps, full_lo, lo), np.where(full.wraps, full_hi, hi))
 
 
 # ------------------------------------------------------------------------------- GA
@@ -376,12 +393,16 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
         return {k: th[k] for k in model.names}
 
     # kernel parameters stay within their bounds, where the evaluator's padding holds the kernel
-    # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1)
-    kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)]
+    # (the support grows with sigma and the tail's length, and with an aspect ratio away from 1);
+    # a parameter that wraps (an angle) goes where it will, and is wrapped into its box at the end
+    kern = [i for i, k in enumerate(space.names) if any(p.name == k for kt in model.kernels for p in kt.params)
+            and not space.wraps[i]]
+    boxed = [i for i in range(len(space.names)) if not space.wraps[i]]
 
     def clamp():
         with torch.no_grad():  # stay where the evaluator's padding holds the kernel
-            u.clamp_(-0.5, 1.5)
+            for i in boxed:
+                u[i].clamp_(-0.5, 1.5)
             for i in kern:
                 u[i].clamp_(0.0, 1.0)
 
@@ -403,8 +424,7 @@ def refine(space: Space, objective: Objective, model, values: dict, device, temp
             return loss
 
         opt.step(closure)
-        g = np.clip(u.detach().cpu().numpy().astype(float), 0, 1)
-        ends.append({k: float(v[0]) for k, v in space.decode(g).items()})
+        ends.append({k: float(v[0]) for k, v in space.decode(u.detach().cpu().numpy().astype(float)).items()})
     return ends if endpoints else ends[-1]
 
 
@@ -416,14 +436,17 @@ def hard_scores(objective: Objective, model, values: list, device) -> np.ndarray
 BOUND_TOL = 5e-3  # a value within this share of its range of a bound is on it (``on_bounds``)
 
 
-def on_bounds(value_sets: list, bounds: dict, names) -> dict:
+def on_bounds(value_sets: list, bounds: dict, names, wrap: dict | None = None) -> dict:
     """The parameters of which any of ``value_sets`` (dicts) lies on a bound of the search,
     within ``BOUND_TOL`` of its range: name -> "lower" or "upper". The calibration flags its
     fit so; the diagnosis its fit and its fold fits, whose spread a bound cuts short
     (``diagnosis.fold_spread``: the fold fits of a heavy tail whose length the prints do
-    not pin down piled up at its 40 px bound; README, "Fits that reach the optimum")."""
+    not pin down piled up at its 40 px bound; README, "Fits that reach the optimum").
+    The parameters in ``wrap`` (``model.periods``) have no bound a search stops at."""
     out = {}
     for n in names:
+        if wrap and n in wrap:
+            continue
         lo, hi = bounds[n]
         tol = BOUND_TOL * (hi - lo)
         v = np.array([vs[n] for vs in value_sets], float)
@@ -669,8 +692,11 @@ def bootstrap(data, refit: dict, seed: int, replicates: int, runner: Refits | No
     if skipped:
         out["note"] = f"{skipped} of {n} bootstrap resamples had no edges (all empty or all solid) and were skipped"
     if len(rows) >= 2:
+        per = periods(refit["space"].params)
+        once = [canonical(row) if "aniso_angle_deg" in per else row for row in rows]  # an ellipse written once
         for k in names:
-            v = np.array([row[k] for row in rows])
+            v = np.array([row[k] for row in once])
+            v = unwrapped(v, per.get(k), np.median(unwrapped(v, per.get(k))))  # an angle's spread across its wrap
             out["parameters"][k] = dict(std=float(v.std(ddof=1)), q05=float(np.quantile(v, 0.05)), q95=float(np.quantile(v, 0.95)))
     return rows, out
 

@@ -124,6 +124,10 @@ class ParamSpec:
     bounds: tuple[float, float]
     unit: str
     doc: str
+    # the model repeats itself over this change of the parameter (an angle); where the
+    # bounds span exactly one period the search wraps across them instead of stopping
+    # there (``periods``)
+    period: float | None = None
 
 
 Theta = dict  # parameter name -> tensor of shape (P,): P parameter sets at once
@@ -347,8 +351,15 @@ class EllipticalGaussianKernel(KernelTerm):
     name = "anisotropy"
     params = (
         GaussianKernel.params[0],
+        # the angle wraps at +-90 deg (the kernel repeats every 180 deg). Until 2026-12-01 it ran -45 to 45 deg, where
+        # (r, 45 + d) is the kernel (1 / r, -45 + d): a fit whose ellipse lay near 45 deg stopped on the angle's bound,
+        # cut off from the same kernel a step away. The ratio still runs either side of 1: a fit that starts with the
+        # long axis across the prints' passes through a round kernel to the other side (with the ratio bounded at 1
+        # one fold fit stopped there, round). So each kernel is written twice, (r, a) and (1 / r, a + 90 deg);
+        # ``canonical`` writes it once, for spreads and means (README, "A kernel's angle wraps")
         ParamSpec("aniso_ratio", 1.0, (0.5, 2.0), "", "sigma_major / sigma_minor of the kernel (< 1: the axis is across aniso_angle_deg)"),
-        ParamSpec("aniso_angle_deg", 0.0, (-45.0, 45.0), "degrees", "direction of the kernel's axis of sigma_px sqrt(aniso_ratio)"),
+        ParamSpec("aniso_angle_deg", 0.0, (-90.0, 90.0), "degrees", "direction of the kernel's axis of sigma_px sqrt(aniso_ratio)",
+                  period=180.0),
     )
     formula = "Gauss_sigma elliptical: sigma sqrt(ratio) along aniso_angle, sigma / sqrt(ratio) across"
 
@@ -1040,6 +1051,47 @@ def extend_params(params: Params, effects) -> Params:
         bounds[k] = tuple(params.bounds[k]) if k in params.bounds else tuple(float(x) for x in spec.bounds)
     info = {k: v for k, v in params.info.items() if k == "parameter_extras"}
     return Params(name, values, bounds, tuple(params.fixed), params.pixel_size_um, info)
+
+
+def periods(params: "Params") -> dict:
+    """name -> period of the parameters of ``params`` that wrap (``ParamSpec.period``):
+    those whose bounds span exactly their period. Bounds narrower than a period (a params
+    file from before the angle wrapped, or bounds set by hand) bound the search as any
+    other parameter's do."""
+    specs = get_model(params.model).specs
+    out = {}
+    for k, (lo, hi) in params.bounds.items():
+        per = getattr(specs.get(k), "period", None)
+        if per and abs((hi - lo) - per) <= 1e-9 * per:
+            out[k] = float(per)
+    return out
+
+
+def canonical(values: dict) -> dict:
+    """``values`` (numbers or arrays) with an elliptical kernel written as the search writes
+    it: its long axis along ``aniso_angle_deg`` (a ratio r < 1 at angle a is the kernel 1 / r
+    at a + 90 deg), the angle within -90..90 deg. The same printer."""
+    if "aniso_ratio" not in values or "aniso_angle_deg" not in values:
+        return dict(values)
+    r, a = np.asarray(values["aniso_ratio"], float), np.asarray(values["aniso_angle_deg"], float)
+    flip = r < 1
+    r, a = np.where(flip, 1.0 / np.maximum(r, 1e-12), r), np.where(flip, a + 90.0, a)
+    a = (a + 90.0) % 180.0 - 90.0
+    if r.ndim == 0:
+        r, a = float(r), float(a)
+    return {**values, "aniso_ratio": r, "aniso_angle_deg": a}
+
+
+def unwrapped(values, period: float | None, centre: float | None = None) -> np.ndarray:
+    """``values`` of a parameter that repeats every ``period`` (None: as they are), each
+    moved by whole periods to within half a period of ``centre`` (default: the first), so
+    that their spread is taken across the wrap (an angle of 89 deg and one of -89 deg are
+    2 deg apart)."""
+    v = np.asarray(values, float)
+    if not period or v.size == 0:
+        return v
+    c = float(v.flat[0]) if centre is None else float(centre)
+    return v - period * np.round((v - c) / period)
 
 
 # ------------------------------------------------------------------- params.yaml
