@@ -63,7 +63,7 @@ from unscatter.diagnosis import DEFAULTS as DIAG_DEFAULTS  # noqa: E402
 from unscatter.diagnosis import diagnose  # noqa: E402
 from unscatter.io import read_tsv, write_tsv, write_yaml  # noqa: E402
 from unscatter.masks import test_pattern_masks, trial_masks  # noqa: E402
-from unscatter.model import EFFECTS, default_params, extend_params, load_params, simulate  # noqa: E402
+from unscatter.model import EFFECTS, canonical, default_params, extend_params, load_params, simulate  # noqa: E402
 
 PX_UM = 5.0  # design pixel size written to the batch (the fits work in design px)
 
@@ -86,18 +86,6 @@ def draw_truth(rng: np.random.Generator, effect: str) -> dict:
         v.update(edge_offset_px=sign * float(rng.uniform(0.5, 2.5)))
     else:
         raise ValueError(f"unknown effect {effect!r}; known: {list(EFFECTS)}")
-    return v
-
-
-def canonical(values: dict) -> dict:
-    """An elliptical kernel as ratio >= 1 at an angle in [-90, 90) (ratio r at angle a is
-    1 / r at a + 90)."""
-    v = dict(values)
-    if "aniso_ratio" in v:
-        r, a = v["aniso_ratio"], v["aniso_angle_deg"]
-        if r < 1:
-            r, a = 1.0 / r, a + 90.0
-        v["aniso_ratio"], v["aniso_angle_deg"] = r, (a + 90.0) % 180.0 - 90.0
     return v
 
 

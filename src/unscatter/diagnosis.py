@@ -96,6 +96,7 @@ from .model import (
     EFFECTS,
     FixedMasks,
     Params,
+    canonical,
     default_device,
     default_params,
     effect_names,
@@ -104,7 +105,6 @@ from .model import (
     keep_freed_memory,
     load_params,
     masks_to_tensor,
-    canonical,
     params_path,
     periods,
     save_params,
@@ -562,9 +562,7 @@ def fold_spread(fold_values: list, names, wrap: dict | None = None) -> dict:
         return {n: float("nan") for n in names}
     out = {}
     for n in names:
-        per = (wrap or {}).get(n)
-        v = unwrapped([fv[n] for fv in fold_values], per)
-        v = unwrapped(v, per, float(np.median(v)))
+        v = unwrapped([fv[n] for fv in fold_values], (wrap or {}).get(n))
         out[n] = float(math.sqrt((k - 1) / k * np.sum((v - v.mean()) ** 2)))
     return out
 
@@ -1213,7 +1211,7 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
             results[c] = (p, ho, stats, ok)
             effect_keys = [sp.name for sp in EFFECTS[c].params]
             wrap = periods(p)  # an angle's mean across its wrap (each kernel written once), back in its bounds
-            written = [canonical(v) if "aniso_angle_deg" in wrap else v for v in ho.fold_values]
+            written = [canonical(v, wrap) for v in ho.fold_values]
             fold_mean = {k: float(np.mean(unwrapped([v[k] for v in written], wrap.get(k)))) for k in effect_keys}
             fold_mean = {k: (float(unwrapped([m], wrap[k], sum(p.bounds[k]) / 2)[0]) if k in wrap else m)
                          for k, m in fold_mean.items()}
@@ -1282,9 +1280,8 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     # an elliptical kernel written once (its long axis along the angle, ``canonical``): fold fits may
     # have ended at either of its two writings
     wrap = periods(final)
-    once = canonical if "aniso_angle_deg" in wrap else dict  # bounds of an older params file: as they are
-    final = final.with_values(**once(final.values))
-    own = [once(v) for v in cur.fold_own]
+    final = final.with_values(**canonical(final.values, wrap))
+    own = [canonical(v, wrap) for v in cur.fold_own]
     spread = fold_spread(own, final.free, wrap)
     # a fold fit stopped on a bound says nothing of how far the prints would take it: the
     # spread of such a parameter (and of those it trades against) is too small

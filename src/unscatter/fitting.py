@@ -693,10 +693,9 @@ def bootstrap(data, refit: dict, seed: int, replicates: int, runner: Refits | No
         out["note"] = f"{skipped} of {n} bootstrap resamples had no edges (all empty or all solid) and were skipped"
     if len(rows) >= 2:
         per = periods(refit["space"].params)
-        once = [canonical(row) if "aniso_angle_deg" in per else row for row in rows]  # an ellipse written once
+        once = [canonical(row, per) for row in rows]  # an ellipse written once
         for k in names:
-            v = np.array([row[k] for row in once])
-            v = unwrapped(v, per.get(k), np.median(unwrapped(v, per.get(k))))  # an angle's spread across its wrap
+            v = unwrapped([row[k] for row in once], per.get(k))  # an angle's spread across its wrap
             out["parameters"][k] = dict(std=float(v.std(ddof=1)), q05=float(np.quantile(v, 0.05)), q95=float(np.quantile(v, 0.95)))
     return rows, out
 

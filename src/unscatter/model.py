@@ -1067,11 +1067,13 @@ def periods(params: "Params") -> dict:
     return out
 
 
-def canonical(values: dict) -> dict:
+def canonical(values: dict, wrap: dict | None = None) -> dict:
     """``values`` (numbers or arrays) with an elliptical kernel written as the search writes
     it: its long axis along ``aniso_angle_deg`` (a ratio r < 1 at angle a is the kernel 1 / r
-    at a + 90 deg), the angle within -90..90 deg. The same printer."""
-    if "aniso_ratio" not in values or "aniso_angle_deg" not in values:
+    at a + 90 deg), the angle within -90..90 deg. The same printer. With ``wrap`` (``periods``
+    of the values' params) only where the angle wraps: bounds of an older params file
+    (-45..45 deg) keep the values as they are."""
+    if "aniso_ratio" not in values or "aniso_angle_deg" not in values or (wrap is not None and "aniso_angle_deg" not in wrap):
         return dict(values)
     r, a = np.asarray(values["aniso_ratio"], float), np.asarray(values["aniso_angle_deg"], float)
     flip = r < 1
@@ -1084,14 +1086,15 @@ def canonical(values: dict) -> dict:
 
 def unwrapped(values, period: float | None, centre: float | None = None) -> np.ndarray:
     """``values`` of a parameter that repeats every ``period`` (None: as they are), each
-    moved by whole periods to within half a period of ``centre`` (default: the first), so
-    that their spread is taken across the wrap (an angle of 89 deg and one of -89 deg are
-    2 deg apart)."""
+    moved by whole periods to within half a period of ``centre`` (default: their median,
+    taken about the first), so that their spread is taken across the wrap (an angle of 89
+    deg and one of -89 deg are 2 deg apart)."""
     v = np.asarray(values, float)
     if not period or v.size == 0:
         return v
-    c = float(v.flat[0]) if centre is None else float(centre)
-    return v - period * np.round((v - c) / period)
+    if centre is None:
+        centre = float(np.median(unwrapped(v, period, float(v.flat[0]))))
+    return v - period * np.round((v - float(centre)) / period)
 
 
 # ------------------------------------------------------------------- params.yaml
