@@ -164,3 +164,26 @@ def test_stain_field_measures_an_uneven_stain_from_the_interiors_and_not_from_ed
     shifted = offset + gain * np.roll(T, 2, axis=1) + noise  # the edges 2 px off, the brightness even
     _, sd_off = stain_field(*stain_ratio(shifted, offset + gain * T, offset, gain), 16.0)
     assert sd_off < 0.02
+
+
+def test_the_template_numbers_its_fit_left_on_a_bound_are_named():
+    """``PrintTemplate.on_bounds``: the numbers a feature's cure rests on that sit on a bound
+    of the fit (the empty cure test is not used then); a share of nothing (no gel dose, no
+    tail, no haze) is a value, and the width of a term with no share is not counted."""
+    from unscatter.imaging.template import PrintTemplate as P
+
+    x = np.array(P.START, float)
+    assert P.on_bounds(x) == []
+    y = x.copy()
+    y[P.NAMES.index("k")], y[P.NAMES.index("tail_sigma")] = 3.0, 100.0
+    assert P.on_bounds(y) == ["k", "tail_sigma"]
+    y[P.NAMES.index("k")] = 2.99
+    assert P.on_bounds(y) == ["tail_sigma"]
+    y[P.NAMES.index("tail")] = 0.0  # no tail: its width is no number of the template
+    assert P.on_bounds(y) == []
+    y[P.NAMES.index("sigma")] = 0.3
+    y[P.NAMES.index("gel")] = 0.0
+    assert P.on_bounds(y) == ["sigma"]
+    y[P.NAMES.index("aniso_c")], y[P.NAMES.index("aniso_s")] = 0.72, 0.96  # |L| = 1.2, the ellipse's bound
+    assert P.on_bounds(y) == ["sigma", "aniso"]
+    assert P.on_bounds(y, names=("k",)) == []

@@ -1436,6 +1436,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     empty, faint = {}, {}  # id -> reason
     doses = [choices[mid].fit.dose for mid in placed_ids if np.isfinite(choices[mid].fit.dose)]
     top_dose = max(doses) if len(doses) >= s.size_min_prints else None  # the empty cure test wants a batch's doses
+    # ... and a template whose cure the prints set: where the fit left a number that a feature's cure relative to a
+    # block's rests on at a bound (seen: a soft cure curve, k at 3, with its tail 100 px wide, took a Siemens star's
+    # cure to 20 % of a block's where the lab cured it to 60 %, and the star, printed, was called empty), the test
+    # cannot say what the mask cured, and such an image is judged as if there were no test
+    unset = PrintTemplate.on_bounds(x)
+    cure_test = dict(used=top_dose is not None and not unset and s.empty_cure_share > 0,
+                     numbers_on_bounds=unset, prints=len(doses))
+    if unset and top_dose is not None and low:
+        log.info("the batch's template left %s on a bound: the empty cure test is not used", ", ".join(unset))
     block_peak = None  # a large block's scattered dose peak (template_cure_share), made once where a print needs it
     for mid, n_above in low.items():
         if dense_as_imaged is not None:  # the threshold the stain's division set (5e), not the one 'low' was judged at
@@ -1449,7 +1458,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         sc = float(np.sqrt(scales[mid][0][0] * scales[mid][0][1]))
         blur = float(np.hypot(x[10], 1.0 / sc))
         cure = None
-        if top_dose is not None and not n_above:  # nothing above the threshold: may the batch's template cure it?
+        if cure_test["used"] and not n_above:  # nothing above the threshold: may the batch's template cure it?
             block_peak = block_dose_peak(full, design_px, x) if block_peak is None else block_peak
             cure = template_cure_share(full, masks[mid], x, top_dose, block_peak)
         if cure is not None and cure < s.empty_cure_share * s.level:
@@ -1475,7 +1484,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             faint[mid] = (f"faint: its brightest polymer reaches {100 * peak / thr:.0f} % of the batch threshold, in {n_above} "
                           f"px (fewer than {s.min_print_px}), and {what}, would image at {100 * reach:.0f} % of it"
                           + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
-                          + ": whether it printed cannot be told, and it is not empty")
+                          + ": whether it printed cannot be told, and it is not empty"
+                          + (f" (the batch's template, with {', '.join(unset)} on a bound of its fit, cannot tell what "
+                             "the mask cured)" if unset and not n_above else ""))
         else:
             empty[mid] = "no polymer above the batch threshold"
 
@@ -1651,7 +1662,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed),
                                                        held_within=held_scale[1]),
-                                                   edge_places=edge_places, feature_sizes=feature_sizes,
+                                                   edge_places=edge_places, feature_sizes=feature_sizes, empty_cure_test=cure_test,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
                                                                      width_counted=False, prints=kernel_prints),

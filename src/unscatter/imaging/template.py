@@ -105,9 +105,34 @@ class PrintTemplate:
     BOUNDS = ((0.3, 25.0), (0.0, 1.5), (0.01, 3.0), *((-1.0, 1.0),) * 5, (0.0, 0.9), (2.0, 100.0), (0.3, 20.0), (0.0, 0.5),
               (2.0, 200.0), (-1.2, 1.2), (-1.2, 1.2))
     ANISO_MAX = 1.2  # |L| at most: a ratio of sigma_major / sigma_minor of e^1.2 = 3.3
+    # the numbers that a feature's cure, relative to a large block's, rests on (``batch.template_cure_share``)
+    CURE = ("sigma", "gel", "k", "tail", "tail_sigma", "haze", "haze_sigma", "aniso")
     # hot, hot_x, hot_y, hot_width: a brighter spot (a darker one, or one centred outside the
     # design field or wider than 0.8 of it, is a smooth field: the quadratic's)
     HOT_BOUNDS = ((0.0, 1.0), (-1.0, 1.0), (-1.0, 1.0), (0.1, 0.8))
+
+    @classmethod
+    def on_bounds(cls, x, names=CURE) -> list[str]:
+        """The numbers among ``names`` that the batch's fit left on a bound of ``BOUNDS``
+        (``aniso``: the ellipse's length at ``ANISO_MAX``): there the fit stopped against
+        the bound, and the prints did not set the number. A share of nothing (no gel dose,
+        no tail, no haze) is a value, not a stop, and the width of a term with no share
+        is no number of the template at all."""
+        x = np.asarray(x, float)
+        out = []
+        for name in names:
+            if name == "aniso":
+                if len(x) > 18 and np.hypot(x[17], x[18]) >= cls.ANISO_MAX * (1 - 1e-6):
+                    out.append(name)
+                continue
+            i = cls.NAMES.index(name)
+            lo, hi = cls.BOUNDS[cls.FREE.index(i)]
+            tol = 1e-6 * (hi - lo)
+            if (name in ("tail_sigma", "haze_sigma") and x[i - 1] <= 0.0) or (name in ("gel", "tail", "haze") and x[i] <= lo):
+                continue
+            if x[i] <= lo + tol or x[i] >= hi - tol:
+                out.append(name)
+        return out
 
     def __init__(self, design_px: int, margin: int, factor: int = 1):
         self.margin, self.f, self.design_px = margin, factor, design_px
