@@ -270,16 +270,16 @@ def test_a_print_is_not_empty_by_a_template_whose_fit_stopped_on_its_bounds(tmp_
     (k at its bound, 3) with its tail 100 px wide (its bound), and by it a Siemens star
     cured to at most 20 % of a large block's density; the lab cured it to 60 %, 0.5 % of
     the field above the print level, which the microscope's blur took below the threshold.
-    The star was `empty` (silently wrong). Where the template's fit left a number that a
-    feature's cure rests on at a bound, the empty cure test is not used: the star is
-    failed as faint, and registration.yaml says why."""
+    The star was `empty` (silently wrong). The empty cure test now takes the larger share
+    with the numbers the fit left on a bound where it left them and where it began: the
+    star is failed as faint, its reason and registration.yaml say why."""
     bench = _bench()
     _, rows = bench.run_lab(3, 2100770225, 32, tmp_path)
     row = next(r for r in rows if r["id"] == "siemens_star_005")
-    assert row["truth_solid"] > 0.002 and row["status"] == "failed" and "on a bound of its fit" in row["reason"], row
+    assert row["truth_solid"] > 0.002 and row["status"] == "failed" and "which its fit left on a bound" in row["reason"], row
     assert not [r["id"] for r in rows if r["status"] == "empty" and r["silently_wrong"]]
     rec = read_yaml(next(tmp_path.rglob("registration.yaml")))["empty_cure_test"]
-    assert rec["used"] is False and {"k", "tail_sigma"} <= set(rec["numbers_on_bounds"]), rec
+    assert rec["used"] is True and {"k", "tail_sigma"} <= set(rec["numbers_on_bounds"]), rec
 
 
 def test_a_print_that_covers_most_of_its_image_is_not_read_as_background_noise(tmp_path):

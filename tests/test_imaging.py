@@ -187,3 +187,7 @@ def test_the_template_numbers_its_fit_left_on_a_bound_are_named():
     y[P.NAMES.index("aniso_c")], y[P.NAMES.index("aniso_s")] = 0.72, 0.96  # |L| = 1.2, the ellipse's bound
     assert P.on_bounds(y) == ["sigma", "aniso"]
     assert P.on_bounds(y, names=("k",)) == []
+    z = P.toward_start(y, ["sigma", "aniso"], 0.5)  # halfway back to where the fit began, the ellipse halfway to round
+    assert z[P.NAMES.index("sigma")] == 0.5 * (0.3 + P.START[P.NAMES.index("sigma")])
+    assert np.allclose(z[[P.NAMES.index("aniso_c"), P.NAMES.index("aniso_s")]], [0.36, 0.48])
+    assert np.array_equal(np.delete(z, [0, 17, 18]), np.delete(y, [0, 17, 18]))

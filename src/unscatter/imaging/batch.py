@@ -1436,16 +1436,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     empty, faint = {}, {}  # id -> reason
     doses = [choices[mid].fit.dose for mid in placed_ids if np.isfinite(choices[mid].fit.dose)]
     top_dose = max(doses) if len(doses) >= s.size_min_prints else None  # the empty cure test wants a batch's doses
-    # ... and a template whose cure the prints set: where the fit left a number that a feature's cure relative to a
-    # block's rests on at a bound (seen: a soft cure curve, k at 3, with its tail 100 px wide, took a Siemens star's
-    # cure to 20 % of a block's where the lab cured it to 60 %, and the star, printed, was called empty), the test
-    # cannot say what the mask cured, and such an image is judged as if there were no test
+    # ... and the numbers of the template that the prints set: where the fit left a number that a feature's cure
+    # relative to a block's rests on at a bound, the prints did not set it, and the share must stay under the bound
+    # whether the number is there or back where the fit began (and halfway): seen, a soft cure curve (k at 3) with
+    # its tail 100 px wide took a Siemens star's cure to 20 % of a block's, with k and the tail's width at their
+    # starts 60 %, as the lab cured it; the star, printed, was called empty
     unset = PrintTemplate.on_bounds(x)
-    cure_test = dict(used=top_dose is not None and not unset and s.empty_cure_share > 0,
-                     numbers_on_bounds=unset, prints=len(doses))
-    if unset and top_dose is not None and low:
-        log.info("the batch's template left %s on a bound: the empty cure test is not used", ", ".join(unset))
-    block_peak = None  # a large block's scattered dose peak (template_cure_share), made once where a print needs it
+    cure_xs = [x] + [PrintTemplate.toward_start(x, unset, f) for f in ((0.5, 1.0) if unset else ())]
+    cure_test = dict(used=top_dose is not None and s.empty_cure_share > 0, numbers_on_bounds=unset, prints=len(doses))
+    block_peaks = None  # a large block's scattered dose peak for each of cure_xs, made once where a print needs it
     for mid, n_above in low.items():
         if dense_as_imaged is not None:  # the threshold the stain's division set (5e), not the one 'low' was judged at
             n_above = int(np.count_nonzero(smooth[mid] > max(thr, 6 * corr[mid].noise)))
@@ -1459,8 +1458,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         blur = float(np.hypot(x[10], 1.0 / sc))
         cure = None
         if cure_test["used"] and not n_above:  # nothing above the threshold: may the batch's template cure it?
-            block_peak = block_dose_peak(full, design_px, x) if block_peak is None else block_peak
-            cure = template_cure_share(full, masks[mid], x, top_dose, block_peak)
+            block_peaks = block_peaks or [block_dose_peak(full, design_px, a) for a in cure_xs]
+            cures = [template_cure_share(full, masks[mid], a, top_dose, b) for a, b in zip(cure_xs, block_peaks)]
+            cure = max(cures)
         if cure is not None and cure < s.empty_cure_share * s.level:
             # nothing images above the threshold, and the batch's own model cures nothing of the
             # mask to the print level at the batch's highest dose: empty, not merely unseen (a
@@ -1468,7 +1468,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # template does not predict: seen, 73 px of a cut-off grating at a share of 42 %)
             empty[mid] = (f"no polymer above the batch threshold, and the batch's template cures its mask "
                           f"to at most {100 * cure:.1f} % of a large block's density at the highest dose of its "
-                          f"determined prints ({top_dose:.2f}), under {100 * s.empty_cure_share * s.level:.1f} %")
+                          f"determined prints ({top_dose:.2f}), under {100 * s.empty_cure_share * s.level:.1f} %"
+                          + (f", with {', '.join(unset)} (on a bound of its fit) where the fit left them or began"
+                             if unset else ""))
             continue
         whole = imaged_peak(masks[mid], blur, erode)
         speck = speck_peak(s.min_print_px, blur)
@@ -1485,8 +1487,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                           f"px (fewer than {s.min_print_px}), and {what}, would image at {100 * reach:.0f} % of it"
                           + (f" ({100 * dim * reach:.0f} % in an image as dim as this batch's prints may be)" if dim < 1 else "")
                           + ": whether it printed cannot be told, and it is not empty"
-                          + (f" (the batch's template, with {', '.join(unset)} on a bound of its fit, cannot tell what "
-                             "the mask cured)" if unset and not n_above else ""))
+                          + (f" (the batch's template cures it to {100 * cures[0]:.0f} % of a block, but to "
+                             f"{100 * max(cures):.0f} % with {', '.join(unset)}, which its fit left on a bound, where the "
+                             "fit began)" if cure is not None and cures[0] < s.empty_cure_share * s.level else ""))
         else:
             empty[mid] = "no polymer above the batch threshold"
 

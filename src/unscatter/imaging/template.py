@@ -134,6 +134,19 @@ class PrintTemplate:
                 out.append(name)
         return out
 
+    @classmethod
+    def toward_start(cls, x, names, f: float) -> np.ndarray:
+        """``x`` with the numbers ``names`` (as ``on_bounds`` names them) moved the share
+        ``f`` of the way back to ``START``, where the fit began (``aniso``: toward round)."""
+        y = np.array(x, float)
+        for name in names:
+            if name == "aniso":
+                y[17:19] *= 1.0 - f
+            else:
+                i = cls.NAMES.index(name)
+                y[i] += f * (cls.START[i] - y[i])
+        return y
+
     def __init__(self, design_px: int, margin: int, factor: int = 1):
         self.margin, self.f, self.design_px = margin, factor, design_px
         n = (design_px + 2 * margin) // factor
