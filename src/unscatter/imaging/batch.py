@@ -1439,8 +1439,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # ... and the numbers of the template that the prints set: where the fit left a number that a feature's cure
     # relative to a block's rests on at a bound, the prints did not set it, and the share must stay under the bound
     # whether the number is there or back where the fit began (and halfway): seen, a soft cure curve (k at 3) with
-    # its tail 100 px wide took a Siemens star's cure to 20 % of a block's, with k and the tail's width at their
-    # starts 60 %, as the lab cured it; the star, printed, was called empty
+    # its tail 100 px wide took a Siemens star's cure to 20 % of a block's (72 % with k and the tail's width at their
+    # starts; the lab cured it to 60 %), and the star, printed, was called empty
     unset = PrintTemplate.on_bounds(x)
     cure_xs = [x] + [PrintTemplate.toward_start(x, unset, f) for f in ((0.5, 1.0) if unset else ())]
     cure_test = dict(used=top_dose is not None and s.empty_cure_share > 0, numbers_on_bounds=unset, prints=len(doses))
