@@ -168,8 +168,9 @@ def test_stain_field_measures_an_uneven_stain_from_the_interiors_and_not_from_ed
 
 def test_the_template_numbers_its_fit_left_on_a_bound_are_named():
     """``PrintTemplate.on_bounds``: the numbers a feature's cure rests on that sit on a bound
-    of the fit (the empty cure test is not used then); a share of nothing (no gel dose, no
-    tail, no haze) is a value, and the width of a term with no share is not counted."""
+    of the fit (the empty cure test then also takes them back toward where the fit began,
+    ``toward_start``); a share of nothing (no gel dose, no tail, no haze) is a value, and
+    the width of a term with no share is not counted."""
     from unscatter.imaging.template import PrintTemplate as P
 
     x = np.array(P.START, float)

@@ -128,6 +128,7 @@ class PrintTemplate:
             i = cls.NAMES.index(name)
             lo, hi = cls.BOUNDS[cls.FREE.index(i)]
             tol = 1e-6 * (hi - lo)
+            # a width's share is the number before it in NAMES (tail, tail_sigma; haze, haze_sigma)
             if (name in ("tail_sigma", "haze_sigma") and x[i - 1] <= 0.0) or (name in ("gel", "tail", "haze") and x[i] <= lo):
                 continue
             if x[i] <= lo + tol or x[i] >= hi - tol:
