@@ -282,6 +282,38 @@ def test_a_print_is_not_empty_by_a_template_whose_fit_stopped_on_its_bounds(tmp_
     assert rec["used"] is True and {"k", "tail_sigma"} <= set(rec["numbers_on_bounds"]), rec
 
 
+def test_a_grating_whose_cured_part_the_field_placed_is_not_ok_a_pitch_off(tmp_path):
+    """Lab 4 of the registration benchmark's seed 1057022953 (a lamp hot spot of 0.20, an
+    uneven stain of 24 %): a cut-off grating whose mask spans the field printed only where
+    the lamp's field cured it. The pose a pitch (28 px) along the grating lays the same
+    mask over every part that cured (``mask_apart`` 0.0001): only where the template puts
+    the field tells the two apart. The image preferred that pose to the true one by an
+    evidence of 4.8, and the print was `ok` a pitch off; it is now failed as ambiguous,
+    the reason saying why."""
+    bench = _bench()
+    _, rows = bench.run_lab(4, 1057022953, 32, tmp_path)
+    row = next(r for r in rows if r["id"] == "grating_cutoff_014")
+    assert row["status"] == "failed" and "lays the same mask over every part of the print that cured" in row["reason"], row
+    assert not [r["id"] for r in rows if r["silently_wrong"]]
+
+
+def test_prints_whose_rival_lays_another_mask_on_them_are_not_failed_for_the_field(tmp_path):
+    """Lab 6 of the same seed (a lamp hot spot of 0.07, no stain, thin lines near their
+    cure threshold): a grating and a lines print whose rivals the image sets apart by
+    an evidence of 11 that rests on pixels whose cure a dose 16 % higher or lower would
+    change as well. A test that left those pixels out failed both, though both were
+    registered right (1.2 and 0.8 px). The grating's rival, a pitch (36 px) along, lays
+    other lines on the part that cured (13 % of it); the lines print's rival (1.9 px
+    away) lays the same mask there (0.1 %) but moves that part by 0.5 px only: a pose
+    that differs away from what cured, no period along. Both stay `ok`."""
+    bench = _bench()
+    _, rows = bench.run_lab(6, 1057022953, 32, tmp_path)
+    by = {r["id"]: r for r in rows}
+    for mid in ("grating_005", "lines_022"):
+        assert by[mid]["status"] == "ok" and by[mid]["rms_px"] < 1.5, by[mid]
+    assert not [r["id"] for r in rows if r["silently_wrong"]]
+
+
 def test_a_print_that_covers_most_of_its_image_is_not_read_as_background_noise(tmp_path):
     """Lab 6 of the registration benchmark's seed 105045948 (8-bit images of 663 x 642, a
     scatter of 24.8 um): a cut-off grating printed as one block over 58 % of the field.

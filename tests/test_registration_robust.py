@@ -1634,3 +1634,55 @@ def test_a_speck_as_small_as_the_least_print_images_dimmer_the_wider_the_blur():
         assert speck_peak(30, b) == pytest.approx(1 - np.exp(-r2 / (2 * b * b)), abs=0.02), b
     assert speck_peak(30, 3.7) < 0.35 < 0.95 < speck_peak(30, 0.8)
 
+
+
+def test_a_pitch_along_a_grating_that_cured_in_part_of_the_field_lays_the_same_mask_on_the_print():
+    """A grating across the whole field of which only the middle cures, under a lamp hot
+    spot; the batch's template has the hot spot a pitch to one side. The pose a pitch the
+    other way then predicts the image best, and the evidence prefers it clearly to the true
+    pose: only the template's field, placed with the pose, sets the two apart, and the two
+    lay the same mask over every part that cured (``mask_apart`` near 0). A grating that
+    cures to its mask's ends is told from its pose a pitch off by its end lines: they lay
+    different masks over a share of the cured part some hundred times larger, and the
+    evidence prefers the true pose. A pose two pixels along moves every edge: with the
+    blur that ``choose_pose`` gives the comparison (a quarter of the poses' distance), the
+    two lay different masks over a large share, where the blur kept for poses a pitch
+    apart (2 px) would hide it."""
+    from unscatter.imaging.batch import MARGIN, Settings, mask_apart, predicted_print
+    from unscatter.imaging.pose import NUISANCE, Fit, evidence, predicted_image
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    pitch = 24
+    mask = np.zeros((512, 512), np.uint8)
+    for c in range(16, 496, pitch):
+        mask[40:472, c : c + 12] = 255
+    m = tmpl.padded(mask)
+    shape = tmpl.shape
+    rng = np.random.default_rng(5)
+
+    def z_apart(x_true, x_model, dose, shift=pitch, blur=2.0):
+        q = np.array([dose] + [m_ if m_ is not None else 1.0 for _, m_, _ in NUISANCE[1:]], float)
+        a = Fit(np.array([[1.0, 0, 0], [0, 1.0, 0]]), 100.0, 0.0, q, 1.0, 0.1, True, 0)
+        b = Fit(np.array([[1.0, 0, -shift], [0, 1.0, 0]]), 100.0, 0.0, q, 1.0, 0.1, True, 0)
+        img = predicted_image(a, predicted_print(tmpl, tmpl.exposure(m, x_true), x_true, a), shape)[0]
+        img = (img + rng.normal(0.0, 1.0, shape)).astype(np.float32)
+        B = tmpl.exposure(m, x_model)
+        fa, fb = (a, predicted_print(tmpl, B, x_model, a)), (b, predicted_print(tmpl, B, x_model, b))
+        share, moved = mask_apart(m, fa, fb, shape, blur=blur)
+        assert abs(moved - shift) < 0.01, (moved, shift)  # the cured part moves by the shift
+        return evidence(img, fa, fb), share
+
+    x_true = np.array(PrintTemplate.START, float)
+    x_true[13:17] = (1.0, 0.0, 0.0, 0.3)  # a hot spot of twice the field's dose in the middle
+    x_model = x_true.copy()
+    x_model[14] += pitch * float(tmpl.X[0, 1] - tmpl.X[0, 0])  # the template's, a pitch to the right
+    z, apart = z_apart(x_true, x_model, 0.3)  # only where the hot spot doubles the dose does the grating cure
+    assert z < -8, z  # the image prefers the pose a pitch off
+    assert apart < 0.2 * Settings.field_set_share, apart  # the same mask over every part that cured
+    flat = np.array(PrintTemplate.START, float)
+    z, apart = z_apart(flat, flat, 1.0)  # cured to the mask's ends: they set the pose
+    assert z > 8 and apart > 5 * Settings.field_set_share, (z, apart)
+    _, hidden = z_apart(x_true, x_model, 0.3, shift=2)  # two pixels along, blurred as for a pitch
+    _, apart = z_apart(x_true, x_model, 0.3, shift=2, blur=2 / 4)  # blurred as choose_pose does
+    assert hidden < Settings.field_set_share < apart / 20, (hidden, apart)

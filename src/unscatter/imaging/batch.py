@@ -52,6 +52,8 @@ class Settings:
     candidates: int = 3  # distinct coarse poses refined per print
     min_evidence: float = 4.0  # z a pose needs over every distinct alternative (pose.evidence)
     distinct_px: float = 1.5  # poses further apart than this (RMS, design px) are distinct
+    field_set_share: float = 0.005  # a rival whose mask differs from the chosen pose's over less than this share of the
+    # cured part (mask_apart) is set apart by the template's field alone: the print is ambiguous, whatever the evidence
     symmetric_corr: float = 0.9  # a mask that correlates this well with itself rotated (blurred 2 px) is symmetric ...
     symmetric_dip: float = 0.1  # ... when its correlation dips by this much at some smaller turn (stars 0.2 to 0.7,
     # blocks, dots and checkerboards turned a little less than 0.05)
@@ -123,6 +125,10 @@ class PoseChoice:
     rival: np.ndarray | None = None  # the rival's grid -> image pose, when one was close
     tried: int = 0
     symmetry: float | None = None  # deg: the mask maps onto itself rotated by this, and the rival is the chosen pose so turned
+    # the rival least set apart by the image whose mask differs from the chosen pose's over less than
+    # Settings.field_set_share of the cured part (mask_apart): its evidence, that share, and its pose
+    field_set: tuple | None = None
+    field_rival: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:  # the chosen pose's refinement settled (a refit held to a scale: that refit's)
@@ -154,6 +160,44 @@ HELD_RESCALE = 0.002  # a print held to a scale (step 5c) this far (log) off it 
 FAR_DEG, FAR_SCALE = 5.0, 1.1  # choose_pose: a coarse start this far beyond the searched rotations or scales stops
 SYMMETRY_FACTOR = 2  # choose_pose: the mask's turns onto itself are sought at half resolution (at a quarter, a fine
 # star's spokes merge: a 36-spoke star showed no symmetry and was `ok` two spokes, 77 px, off)
+
+
+def mask_apart(m: np.ndarray, a: tuple, b: tuple, shape, blur: float = 2.0, widen: int = 6) -> tuple[float, float]:
+    """Where two poses ``a`` and ``b`` ((Fit, template), as ``evidence``'s) put different
+    parts of the mask on what either predicts cured, and how far they move that part.
+
+    The share: the area where the two poses' masks in the image (``m``, the padded mask
+    on the templates' grid, each blurred ``blur`` px) differ by half or more, within
+    either's cured part (its template at a quarter of its top or more, widened by
+    ``widen`` px), over the area of the mask there. The blur forgives the two poses'
+    lines a misfit of a fraction of it; the caller keeps it under a quarter of the poses'
+    distance, so that two poses a pixel or two apart, which move every edge, do not read
+    as laying the same mask. The move: the median distance (design px) between where the
+    two poses send the grid's points that either predicts cured.
+
+    The share is near 0 where the two poses lay the same mask over the whole cured part:
+    a grating that spans the field, a pitch along, so that only the template's field,
+    placed with the pose, sets them apart; a pitch along a grating whose ends cured moves
+    its end lines, and a dot array's rows, by a share of some per cent. Only with a move
+    of a pattern's period is that share a sign of it: two poses that differ only away
+    from the cured part (a small turn about it) lay the same mask there as well."""
+    def warp(T, f):
+        return cv2.warpAffine(T, f.M, (shape[1], shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                              borderValue=0.0)
+    Ta, Tb = warp(a[1], a[0]), warp(b[1], b[0])
+    cured = (Ta >= 0.25 * max(float(Ta.max()), 1e-9)) | (Tb >= 0.25 * max(float(Tb.max()), 1e-9))
+    cured = cv2.dilate(cured.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * widen + 1, 2 * widen + 1))) > 0
+    Ma = cv2.GaussianBlur(warp(m, a[0]), (0, 0), blur)
+    Mb = cv2.GaussianBlur(warp(m, b[0]), (0, 0), blur)
+    area = float(((Ma >= 0.5) & cured).sum())
+    share = float((np.abs(Ma - Mb) >= 0.5)[cured].sum()) / max(area, 1.0)
+    cured_grid = (a[1] >= 0.25 * max(float(a[1].max()), 1e-9)) | (b[1] >= 0.25 * max(float(b[1].max()), 1e-9))
+    y, x = np.nonzero(cured_grid[::4, ::4])
+    if not len(x):
+        return share, 0.0
+    P = np.stack([4.0 * x, 4.0 * y])
+    d = (a[0].M[:, :2] - b[0].M[:, :2]) @ P + (a[0].M[:, 2:3] - b[0].M[:, 2:3])
+    return share, float(np.median(np.hypot(d[0], d[1])) / np.sqrt(abs(np.linalg.det(a[0].M[:, :2]))))
 
 
 def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings, design_px: int, scale: tuple,
@@ -229,6 +273,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
              and evidence(img, best, f, factor=2) < 3 * s.min_evidence]
     best = fine(best)
     z_min, rival = float("inf"), None
+    field_set, field_rival = None, None
 
     def halfway(a, b):
         """The pose halfway between two poses (the nuisance numbers too), and how much
@@ -248,6 +293,15 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         z = evidence(img, best, f)
         if z < 0:
             best, f, z = f, best, -z
+        if z >= s.min_evidence and (field_set is None or z < field_set[0]):  # for the final QC only: the prints the
+            # template is fitted at stay those the whole image places
+            d = pose_distance(f[0].M, best[0].M, n, MARGIN)
+            share, moved = mask_apart(full.padded(mask), best, f, img.shape, blur=min(2.0, d / 4))
+            log.debug("field-set check: rival %.1f px away, its cured part moved %.1f px, evidence %.1f, masks apart "
+                      "over %.4f of the cured part", d, moved, z, share)
+            if share < s.field_set_share and moved > s.distinct_px:  # a period along, not a pose that differs
+                # only where nothing cured (whose uncertainty the pose spread holds)
+                field_set, field_rival = (z, share), f[0].M
         if z < s.min_evidence:
             mid, z_mid = halfway(best, f)
             if z_mid <= -s.min_evidence and between < 2:  # the pose between them fits clearly better: refined, it competes
@@ -275,7 +329,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         # no rival by it, and was `ok` a spoke, 66 px, off)
         if in_range(alt, factor=float("inf")) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
-    return PoseChoice(best[0], z_min, rival, len(fits))
+    return PoseChoice(best[0], z_min, rival, len(fits), field_set=field_set, field_rival=field_rival)
 
 
 def determined(ch: PoseChoice, s: Settings) -> bool:
@@ -1570,6 +1624,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"ambiguous: a pose {pose_distance(ch.rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px away "
                            f"(rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
                            f"{rv['shift_y']:.1f}) fits almost as well (evidence {ch.evidence:.1f} < {s.min_evidence})")
+        elif ch.field_set is not None:
+            rv = pose_of(to_design(ch.field_rival, MARGIN), design_px, k.c.shape)
+            reasons.append(f"ambiguous: a pose {pose_distance(ch.field_rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px "
+                           f"away (rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
+                           f"{rv['shift_y']:.1f}) lays the same mask over every part of the print that cured (it differs "
+                           f"over {100 * ch.field_set[1]:.2f} % of it): only where the batch's template puts the lamp's "
+                           f"field sets the two apart (evidence {ch.field_set[0]:.1f}), as along a grating that spans the "
+                           f"field and cured in part of it")
         if not ch.fit.pose_sd <= s.max_pose_sd:
             how = (f"uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})" if ch.fit.pose_sd < 1e3 else
                    "free along some direction (a shift along a grating's lines, a turn of a disc)")
