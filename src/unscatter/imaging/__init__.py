@@ -15,7 +15,10 @@ vignetting, background and noise, with no fiducial marks. For each print of a ba
    and offset; the moves under which the predicted print maps onto itself (a grating's
    pitch, a star's spokes) are tried as well, and the pose the image prefers over
    every distinct rival is kept. When a rival fits almost as well the print is
-   ``failed`` as **ambiguous**.
+   ``failed`` as **ambiguous**; so it is when a rival a period along (a grating that
+   spans the field and cured in part of it) lays the same mask over every part that
+   cured, so that only where the template puts the lamp's field sets the two apart
+   (``batch.mask_apart``).
 4. **QC** (``batch``): rotation and scale in range, refinement converged, template
    correlation at least ``min_score``, the print inside the image, the evidence over
    rivals. A print that fails is marked ``failed`` in qc.tsv with the reason and no
