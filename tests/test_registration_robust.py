@@ -1635,7 +1635,6 @@ def test_a_speck_as_small_as_the_least_print_images_dimmer_the_wider_the_blur():
     assert speck_peak(30, 3.7) < 0.35 < 0.95 < speck_peak(30, 0.8)
 
 
-
 def test_a_pitch_along_a_grating_that_cured_in_part_of_the_field_lays_the_same_mask_on_the_print():
     """A grating across the whole field of which only the middle cures, under a lamp hot
     spot; the batch's template has the hot spot a pitch to one side. The pose a pitch the

@@ -20,7 +20,7 @@ from ..io import InputError, open_batch, output_dir, read_mask, write_png, write
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
-                   kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, refine,
+                   kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc, well_fitted
@@ -126,9 +126,8 @@ class PoseChoice:
     tried: int = 0
     symmetry: float | None = None  # deg: the mask maps onto itself rotated by this, and the rival is the chosen pose so turned
     # the rival least set apart by the image whose mask differs from the chosen pose's over less than
-    # Settings.field_set_share of the cured part (mask_apart): its evidence, that share, and its pose
+    # Settings.field_set_share of the cured part (mask_apart): (its evidence, that share, its grid -> image pose)
     field_set: tuple | None = None
-    field_rival: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:  # the chosen pose's refinement settled (a refit held to a scale: that refit's)
@@ -184,19 +183,20 @@ def mask_apart(m: np.ndarray, a: tuple, b: tuple, shape, blur: float = 2.0, wide
     def warp(T, f):
         return cv2.warpAffine(T, f.M, (shape[1], shape[0]), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                               borderValue=0.0)
-    Ta, Tb = warp(a[1], a[0]), warp(b[1], b[0])
-    cured = (Ta >= 0.25 * max(float(Ta.max()), 1e-9)) | (Tb >= 0.25 * max(float(Tb.max()), 1e-9))
+
+    def top(T):  # what a template predicts cured: a quarter of its top or more
+        return T >= 0.25 * max(float(T.max()), 1e-9)
+
+    cured = top(warp(a[1], a[0])) | top(warp(b[1], b[0]))
     cured = cv2.dilate(cured.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * widen + 1, 2 * widen + 1))) > 0
     Ma = cv2.GaussianBlur(warp(m, a[0]), (0, 0), blur)
     Mb = cv2.GaussianBlur(warp(m, b[0]), (0, 0), blur)
     area = float(((Ma >= 0.5) & cured).sum())
     share = float((np.abs(Ma - Mb) >= 0.5)[cured].sum()) / max(area, 1.0)
-    cured_grid = (a[1] >= 0.25 * max(float(a[1].max()), 1e-9)) | (b[1] >= 0.25 * max(float(b[1].max()), 1e-9))
-    y, x = np.nonzero(cured_grid[::4, ::4])
+    y, x = np.nonzero((top(a[1]) | top(b[1]))[::4, ::4])
     if not len(x):
         return share, 0.0
-    P = np.stack([4.0 * x, 4.0 * y])
-    d = (a[0].M[:, :2] - b[0].M[:, :2]) @ P + (a[0].M[:, 2:3] - b[0].M[:, 2:3])
+    d = pose_moves(a[0].M, b[0].M, np.stack([4.0 * x, 4.0 * y]))
     return share, float(np.median(np.hypot(d[0], d[1])) / np.sqrt(abs(np.linalg.det(a[0].M[:, :2]))))
 
 
@@ -213,8 +213,9 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     rotation = tuple(s.rotation_deg if rotation is None else rotation)
     half = PrintTemplate(design_px, MARGIN, factor=2)
     full = PrintTemplate(design_px, MARGIN)
+    m_full = full.padded(mask)
     B_half = half.exposure(half.padded(mask), x)
-    B_full = full.exposure(full.padded(mask), x)
+    B_full = full.exposure(m_full, x)
     n = full.shape[0]
 
     def coarse(M, known=()):  # half resolution: every start and every move; None where it joins a known pose
@@ -273,7 +274,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
              and evidence(img, best, f, factor=2) < 3 * s.min_evidence]
     best = fine(best)
     z_min, rival = float("inf"), None
-    field_set, field_rival = None, None
+    field_set = None
 
     def halfway(a, b):
         """The pose halfway between two poses (the nuisance numbers too), and how much
@@ -296,12 +297,12 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         if z >= s.min_evidence and (field_set is None or z < field_set[0]):  # for the final QC only: the prints the
             # template is fitted at stay those the whole image places
             d = pose_distance(f[0].M, best[0].M, n, MARGIN)
-            share, moved = mask_apart(full.padded(mask), best, f, img.shape, blur=min(2.0, d / 4))
+            share, moved = mask_apart(m_full, best, f, img.shape, blur=min(2.0, d / 4))
             log.debug("field-set check: rival %.1f px away, its cured part moved %.1f px, evidence %.1f, masks apart "
                       "over %.4f of the cured part", d, moved, z, share)
             if share < s.field_set_share and moved > s.distinct_px:  # a period along, not a pose that differs
                 # only where nothing cured (whose uncertainty the pose spread holds)
-                field_set, field_rival = (z, share), f[0].M
+                field_set = (z, share, f[0].M)
         if z < s.min_evidence:
             mid, z_mid = halfway(best, f)
             if z_mid <= -s.min_evidence and between < 2:  # the pose between them fits clearly better: refined, it competes
@@ -319,7 +320,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     # (its print then maps onto itself turned as well: only then is the mask looked at)
     symmetries = []
     if any(abs(S[0, 1]) > 1e-6 for S in moves):
-        m = cv2.GaussianBlur(full.padded(mask).astype(np.float32), (0, 0), 2.0)
+        m = cv2.GaussianBlur(m_full.astype(np.float32), (0, 0), 2.0)
         symmetries = self_similar_moves(m, rotation_span=max(10.0, rotation[1] - rotation[0]), min_corr=s.symmetric_corr,
                                         shifts=False, dip=s.symmetric_dip, factor=SYMMETRY_FACTOR)
     for R in symmetries:
@@ -329,7 +330,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         # no rival by it, and was `ok` a spoke, 66 px, off)
         if in_range(alt, factor=float("inf")) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
-    return PoseChoice(best[0], z_min, rival, len(fits), field_set=field_set, field_rival=field_rival)
+    return PoseChoice(best[0], z_min, rival, len(fits), field_set=field_set)
 
 
 def determined(ch: PoseChoice, s: Settings) -> bool:
@@ -1625,12 +1626,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"(rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
                            f"{rv['shift_y']:.1f}) fits almost as well (evidence {ch.evidence:.1f} < {s.min_evidence})")
         elif ch.field_set is not None:
-            rv = pose_of(to_design(ch.field_rival, MARGIN), design_px, k.c.shape)
-            reasons.append(f"ambiguous: a pose {pose_distance(ch.field_rival, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px "
+            z_f, share_f, M_f = ch.field_set
+            rv = pose_of(to_design(M_f, MARGIN), design_px, k.c.shape)
+            reasons.append(f"ambiguous: a pose {pose_distance(M_f, ch.fit.M, design_px + 2 * MARGIN, MARGIN):.1f} px "
                            f"away (rotation {rv['rotation_deg']:.2f} deg, scale {rv['scale']:.4f}, shift {rv['shift_x']:.1f}, "
                            f"{rv['shift_y']:.1f}) lays the same mask over every part of the print that cured (it differs "
-                           f"over {100 * ch.field_set[1]:.2f} % of it): only where the batch's template puts the lamp's "
-                           f"field sets the two apart (evidence {ch.field_set[0]:.1f}), as along a grating that spans the "
+                           f"over {100 * share_f:.2f} % of it): only where the batch's template puts the lamp's "
+                           f"field sets the two apart (evidence {z_f:.1f}), as along a grating that spans the "
                            f"field and cured in part of it")
         if not ch.fit.pose_sd <= s.max_pose_sd:
             how = (f"uncertain by {ch.fit.pose_sd:.2f} px (more than {s.max_pose_sd})" if ch.fit.pose_sd < 1e3 else

@@ -74,10 +74,15 @@ def _field_points(grid_px: int, margin: int, step: int) -> np.ndarray:
     return P
 
 
+def pose_moves(M1: np.ndarray, M2: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Where two grid->image poses send the grid points ``P`` (2 x n), the first less
+    the second (image px, 2 x n)."""
+    return (M1[:, :2] - M2[:, :2]) @ P + (M1[:, 2:3] - M2[:, 2:3])
+
+
 def pose_distance(M1: np.ndarray, M2: np.ndarray, grid_px: int, margin: int, step: int = 16) -> float:
     """RMS distance (design px) between where two grid->image poses send the design region."""
-    P = _field_points(int(grid_px), int(margin), int(step))
-    d = (M1[:, :2] - M2[:, :2]) @ P + (M1[:, 2:3] - M2[:, 2:3])
+    d = pose_moves(M1, M2, _field_points(int(grid_px), int(margin), int(step)))
     s = np.sqrt(abs(np.linalg.det(M2[:, :2])))
     return float(np.sqrt(np.mean(np.sum(d * d, axis=0))) / s)
 
