@@ -1094,6 +1094,19 @@ def test_stated_scales_are_measured_by_the_prints_that_fix_their_scale():
     used, note, shift = stated_scales(priors, many, s)
     assert note == "" and shift == 0 and used["h"][0] == pytest.approx(np.log(1.1) + 0.02)
     assert used["h"][1] == pytest.approx(1.4826 * 0.002) and used["h"][1] >= s.min_scale_sd
+    # fewer than scale_min_prints, but at least stated_min_prints, that agree more closely
+    # than a loose tolerance (0.6 %, sd 0.3 %): shifted, known within their largest
+    # deviation (of five, one may be pulled off: the second largest), at least min_scale_sd
+    loose = {k: (np.log(1.19), 0.003) for k in "abcdefgh"}
+    five = {k: np.log(1.19) + d for k, d in zip("abcde", (-0.00216, -0.0023, -0.00247, -0.0078, -0.00244))}
+    used, note, shift = stated_scales(loose, five, s)
+    assert note == "" and shift == 0 and used["h"][0] == pytest.approx(np.log(1.19) - 0.00244)
+    assert used["h"][1] == pytest.approx(max(s.min_scale_sd, 0.00244 - 0.00216))
+    three = {k: np.log(1.19) + d for k, d in zip("abc", (-0.0022, -0.0023, -0.0078))}  # one of three far off
+    used, note, shift = stated_scales(loose, three, s)
+    assert used == {k: loose[k] for k in "abcdefgh"}  # its deviation (0.55 %) is over the tolerance's sd: as stated
+    used, note, shift = stated_scales(loose, dict(list(five.items())[:2]), s)  # two: too few, as stated
+    assert used == {k: loose[k] for k in "abcdefgh"}
 
 
 def test_stated_scatter_is_what_the_prints_scatter_beyond_their_own_spreads():
