@@ -503,9 +503,10 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
         dev = np.sort(np.abs(d - off))
         spread = max(s.min_scale_sd, float(dev[-2] if len(d) >= 5 else dev[-1]))
         if spread < tol / 2:
-            log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (largest "
-                     "deviation, one print left out of five or more, %.2f %%): the stated scales shifted by that, each known within %.2f %% (not %.2f %%, "
-                     "their tolerance)", len(d), 100 * off, 100 * spread, 100 * spread, 50 * tol)
+            log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (their "
+                     "largest deviation from that, of five the second largest, %.2f %%): the stated scales shifted by "
+                     "that, each known within %.2f %% (not %.2f %%, the sd of the stated tolerance)", len(d), 100 * off,
+                     100 * spread, 100 * spread, 50 * tol)
             return {k: (v[0] + off, spread) for k, v in priors.items()}, "", 0.0
     if abs(off) <= tol:
         log.info("stated camera pixel size: scale known within %.2f %% (its tolerance)%s", 100 * tol,
