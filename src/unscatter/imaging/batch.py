@@ -492,22 +492,25 @@ def stated_scales(priors: dict, placed: dict, s: Settings) -> tuple[dict, str]:
     if not priors:
         return {}, "", 0.0
     off = float(np.median(d)) if len(d) else 0.0
+
+    def shifted(sd: float) -> dict:  # the stated scales moved by the prints' median offset, each known within sd
+        return {k: (v[0] + off, sd) for k, v in priors.items()}
+
     if len(d) >= s.scale_min_prints:
         spread = 1.4826 * float(np.median(np.abs(d - off)))
         sd = max(s.min_scale_sd, spread)
         log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (spread %.2f %%): "
                  "the stated scales shifted by that, each known within %.2f %%", len(d), 100 * off, 100 * spread, 100 * sd)
-        return {k: (v[0] + off, sd) for k, v in priors.items()}, "", 0.0
+        return shifted(sd), "", 0.0
     tol = float(np.median([2 * v[1] for v in priors.values()]))
     if abs(off) <= tol and len(d) >= s.stated_min_prints:
         dev = np.sort(np.abs(d - off))
         spread = max(s.min_scale_sd, float(dev[-2] if len(d) >= 5 else dev[-1]))
         if spread < tol / 2:
-            log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it (their "
-                     "largest deviation from that, of five the second largest, %.2f %%): the stated scales shifted by "
-                     "that, each known within %.2f %% (not %.2f %%, the sd of the stated tolerance)", len(d), 100 * off,
-                     100 * spread, 100 * spread, 50 * tol)
-            return {k: (v[0] + off, spread) for k, v in priors.items()}, "", 0.0
+            log.info("stated camera pixel size: %d prints whose features fix their scale are %+.2f %% off it: the "
+                     "stated scales shifted by that, each known within %.2f %% (their largest deviation from it, of five "
+                     "the second largest; the stated tolerance's sd is %.2f %%)", len(d), 100 * off, 100 * spread, 50 * tol)
+            return shifted(spread), "", 0.0
     if abs(off) <= tol:
         log.info("stated camera pixel size: scale known within %.2f %% (its tolerance)%s", 100 * tol,
                  f", checked against {len(d)} prints whose features fix their scale" if len(d) else ", nothing to check it against")
