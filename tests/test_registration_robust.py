@@ -1698,3 +1698,49 @@ def test_a_pitch_along_a_grating_that_cured_in_part_of_the_field_lays_the_same_m
     _, hidden = z_apart(x_true, x_model, 0.3, shift=2)  # two pixels along, blurred as for a pitch
     _, apart = z_apart(x_true, x_model, 0.3, shift=2, blur=2 / 4)  # blurred as choose_pose does
     assert hidden < Settings.field_set_share < apart / 20, (hidden, apart)
+
+
+def test_a_dot_that_only_one_pose_explains_sets_a_rival_aside_where_the_evidence_cannot():
+    """Three dots of a dot array printed (its largest column): a rival a row along leaves
+    one printed dot unexplained and predicts one where the image shows none. The blocks
+    of ``evidence`` are too few to reach its bar (z < 4), but ``contradicted`` finds the
+    dot; not where the two poses differ by less than its widening (2 px), not where the
+    rival explains everything the best pose does (the rival is then the best pose), and
+    not in an image whose noise reaches the print's level."""
+    from unscatter.imaging.batch import MARGIN, Settings, predicted_print
+    from unscatter.imaging.pose import NUISANCE, Fit, contradicted, evidence, predicted_image
+    from unscatter.imaging.template import PrintTemplate
+
+    tmpl = PrintTemplate(512, MARGIN)
+    mask = np.zeros((512, 512), np.uint8)
+    yy, xx = np.mgrid[:512, :512]
+    spacing = 54
+    for row in range(3):
+        for col, r in enumerate((10, 5.5, 3.2)):
+            cy, cx = 280 + row * spacing, 140 + col * spacing
+            mask[(yy - cy) ** 2 + (xx - cx) ** 2 <= r * r] = 255
+    m = tmpl.padded(mask)
+    shape = tmpl.shape
+    x = np.array(PrintTemplate.START, float)
+    B = tmpl.exposure(m, x)
+    # a dose at which only the largest dots cure
+    q = np.array([0.6] + [m_ if m_ is not None else 1.0 for _, m_, _ in NUISANCE[1:]], float)
+    rng = np.random.default_rng(11)
+
+    def fit(dy, dx=0.0, sigma=1.0):
+        f = Fit(np.array([[1.0, 0, dx], [0, 1.0, dy]]), 100.0, 0.0, q, sigma, 0.1, True, 0)
+        return f, predicted_print(tmpl, B, x, f)
+
+    a = fit(0.0)
+    assert ndimage.label(a[1] >= 0.5 * a[1].max())[1] == 3  # the largest column of dots
+    clean = predicted_image(a[0], a[1], shape)[0]
+    img = (clean + rng.normal(0.0, 1.0, shape)).astype(np.float32)
+    b = fit(-spacing)  # a row along
+    assert 0 < evidence(img, a, b) < Settings.min_evidence  # the evidence cannot decide
+    assert contradicted(img, a, b, Settings.min_print_px) > 100  # a whole dot only ``a`` explains
+    assert contradicted(img, b, a, Settings.min_print_px) == 0  # nothing that only the rival explains
+    near = fit(0.0, 2.0)  # two pixels along: the widening forgives the edges that move
+    assert contradicted(img, a, near, Settings.min_print_px) == 0
+    noisy = (clean + rng.normal(0.0, 40.0, shape)).astype(np.float32)
+    a_noisy, b_noisy = fit(0.0, sigma=40.0), fit(-spacing, sigma=40.0)
+    assert contradicted(noisy, (a_noisy[0], a[1]), (b_noisy[0], b[1]), Settings.min_print_px) == 0

@@ -18,7 +18,10 @@ vignetting, background and noise, with no fiducial marks. For each print of a ba
    ``failed`` as **ambiguous**; so it is when a rival a period along (a grating that
    spans the field and cured in part of it) lays the same mask over every part that
    cured, so that only where the template puts the lamp's field sets the two apart
-   (``batch.mask_apart``).
+   (``batch.mask_apart``). A rival that leaves a printed part unexplained, or predicts
+   one where the image shows none, while the best pose explains the image there, is
+   set aside (``pose.contradicted``: a print of a few dots spans too few blocks for the
+   evidence to decide).
 4. **QC** (``batch``): rotation and scale in range, refinement converged, template
    correlation at least ``min_score``, the print inside the image, the evidence over
    rivals. A print that fails is marked ``failed`` in qc.tsv with the reason and no

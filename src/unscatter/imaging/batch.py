@@ -20,7 +20,7 @@ from ..io import InputError, open_batch, output_dir, read_mask, write_png, write
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
-                   kernel_spread, feature_places, place_dose_spread, print_template, evidence, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
+                   kernel_spread, feature_places, place_dose_spread, print_template, evidence, contradicted, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc, well_fitted
@@ -130,6 +130,15 @@ class PoseChoice:
     # the rival least set apart by the image whose mask differs from the chosen pose's over less than
     # Settings.field_set_share of the cured part (mask_apart): (its evidence, that share, its grid -> image pose)
     field_set: tuple | None = None
+    # z of the nearest rival set aside by a part of the print that only the chosen pose
+    # explains (``contradicted``): for the print's own QC no rival, for the batch's fits
+    # (``settled``) as if it were one, so that they rest on the prints the evidence places
+    aside: float = float("inf")
+
+    @property
+    def settled(self) -> float:
+        """The evidence over every rival, those set aside by a contradiction too."""
+        return min(self.evidence, self.aside)
 
     @property
     def converged(self) -> bool:  # the chosen pose's refinement settled (a refit held to a scale: that refit's)
@@ -275,7 +284,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     close = [f for f in fits if f is not best and pose_distance(f[0].M, best[0].M, n, MARGIN) > s.distinct_px
              and evidence(img, best, f, factor=2) < 3 * s.min_evidence]
     best = fine(best)
-    z_min, rival = float("inf"), None
+    z_min, rival, z_aside = float("inf"), None, float("inf")
     field_set = None
 
     def halfway(a, b):
@@ -313,6 +322,15 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
                 continue
             if z_mid < s.min_evidence:
                 continue  # one valley with the best pose, not a second pose: the pose spread covers it
+            # a rival that leaves a cured part unexplained, or predicts one where the image shows
+            # none, while the best pose explains the image there and nowhere misses what the
+            # rival explains (a dot array a row along, of which three dots printed): no rival
+            c_best, c_rival = contradicted(img, best, f, s.min_print_px), contradicted(img, f, best, s.min_print_px)
+            log.debug("rival %.1f px away at evidence %.1f: parts of %.0f px only the best pose explains, %.0f only the rival",
+                      pose_distance(f[0].M, best[0].M, n, MARGIN), z, c_best, c_rival)
+            if c_best > 0 and c_rival == 0:
+                z_aside = min(z_aside, z)
+                continue
         if z < z_min:
             z_min, rival = z, f[0].M
     # a mask that maps onto itself rotated (a Siemens star by a spoke pair) leaves the
@@ -332,12 +350,12 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         # no rival by it, and was `ok` a spoke, 66 px, off)
         if in_range(alt, factor=float("inf")) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
-    return PoseChoice(best[0], z_min, rival, len(fits), field_set=field_set)
+    return PoseChoice(best[0], z_min, rival, len(fits), field_set=field_set, aside=z_aside)
 
 
 def determined(ch: PoseChoice, s: Settings) -> bool:
     """A pose the print fixes on its own: converged, no rival close, a small spread."""
-    return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence and ch.fit.pose_sd <= s.max_pose_sd
+    return ch.fit is not None and ch.converged and ch.settled >= s.min_evidence and ch.fit.pose_sd <= s.max_pose_sd
 
 
 def batch_range(poses: list[dict], s: Settings):
@@ -1045,7 +1063,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # 8 % longer; choosing again only where the refined ones moved 0.3 px or more saved
     # no time on 8 labs (they all moved) and left one more print silently wrong.
     def placed(ch) -> bool:  # a pose the template may be fitted at: no rival close, converged (its spread, which a
-        return ch.fit is not None and ch.converged and ch.evidence >= s.min_evidence  # poor template inflates, aside)
+        return ch.fit is not None and ch.converged and ch.settled >= s.min_evidence  # poor template inflates, aside)
 
     def uncontested() -> list:  # the prints the template is fitted on again: up to 12 placed ones, spread over the batch
         ids_ = [mid for mid in todo if placed(choices[mid])]
@@ -1153,7 +1171,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         (rlo, rhi), (slo, shi) = limits
         # and a print turned far from the batch's others (a star one spoke off that the
         # image happened to prefer)
-        redo = [mid for mid, ch in choices.items() if ch.evidence < s.min_evidence or off_rotation(ch.fit.M)]
+        redo = [mid for mid, ch in choices.items() if ch.settled < s.min_evidence or off_rotation(ch.fit.M)]
 
         def again(mid):
             ch = choices[mid]
@@ -1168,7 +1186,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 for t in (turn, -turn):
                     tried.append((h3(ch.fit.M) @ h3(similarity(t, 1.0, (cx, cy), (cx, cy))))[:2])
             new = choose_pose(masks[mid], smooth[mid], tried + list(starts[mid][0]), x, s, design_px, sc, rot)
-            if ch.evidence >= s.min_evidence:  # chosen again only for its rotation: kept where the image clearly
+            if ch.settled >= s.min_evidence:  # chosen again only for its rotation: kept where the image clearly
                 # prefers it to the pose within the batch's range (it then fails), never forced into the range
                 B = exposure_of(mid)
                 z = evidence(smooth[mid], (ch.fit, predicted_print(full, B, x, ch.fit)), (new.fit, predicted_print(full, B, x, new.fit)))

@@ -24,7 +24,10 @@ pixels of context on every side) to image pixels. Registration of one print:
    residual, e_b, give z = sum(e_b) / sqrt(sum(e_b^2)): z grows as the square root of
    the number of blocks that agree, so a decision needs the evidence spread over the
    print (a period broken at the print's ends, the parts that did not cure), not a
-   single dust speck, and needs no noise model.
+   single dust speck, and needs no noise model. A print of a few small dots spans too
+   few blocks for z to reach its bar against any rival; ``contradicted`` finds a part
+   the size of a feature that only one of two poses explains (polymer where the other
+   predicts no cure near, or a cured part it predicts where the image shows none).
 5. **Spread** (``Fit.pose_sd``, ``size_spread``): how well the print fixes its pose,
    from the noise and from how hard its parts pull against each other (a cluster-robust
    estimate over tiles, ``_pose_sd``), and separately how far the pose rests on the
@@ -1236,6 +1239,44 @@ def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 8, clip: float = 
     eb = e[:Hb, :Wb].reshape(Hb // block, block, Wb // block, block).sum(axis=(1, 3)).ravel()
     den = float(np.sqrt((eb * eb).sum()))
     return float(eb.sum() / den) if den > 0 else 0.0
+
+
+def contradicted(img: np.ndarray, a: tuple, b: tuple, min_px: int, widen: int = 3, factor: int = 1) -> float:
+    """The largest part of the print (image px) where the image sides with fit ``a``
+    against fit ``b`` beyond any misfit of the template: polymer that ``a`` predicts
+    cured and ``b`` predicts nowhere near (``widen`` px around what it predicts), or a
+    part that ``b`` predicts cured well inside (at three quarters of the print's level)
+    where the image shows no polymer and ``a`` predicts none. Parts under ``min_px`` do
+    not count, nor any where the image's noise reaches half the print's level.
+
+    ``evidence`` weighs blocks of 8 px, so that a speck cannot decide; a print of a few
+    small dots spans so few blocks that no rival reaches a z of 4 against it, however
+    clearly the image shows a dot where the rival predicts none. A dot the size of the
+    print's features that one pose explains and the other cannot (light cures no polymer
+    where the scattered dose is nowhere near the threshold) is such a contradiction.
+    """
+    Pa, fa = predicted_image(a[0], a[1], img.shape, factor)
+    Pb, fb = predicted_image(b[0], b[1], img.shape, factor)
+    amp = min(print_level(*a), print_level(*b))
+    if not amp > 0 or max(a[0].sigma, b[0].sigma) > 0.125 * amp:  # a noisy image: no part is clear
+        return 0.0
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * widen + 1, 2 * widen + 1))
+
+    def near(P, f, level):  # where a fit predicts its print at ``level`` of the print's level or more, widened
+        return cv2.dilate(((P - f.offset >= level * amp) & np.isfinite(img)).astype(np.uint8), kernel) > 0
+
+    off = 0.5 * (a[0].offset + b[0].offset)
+    polymer = np.nan_to_num(img, nan=off) - off >= 0.5 * amp
+    bare = np.nan_to_num(img, nan=off + amp) - off < 0.25 * amp
+    unexplained = polymer & near(Pa, a[0], 0.25) & ~near(Pb, b[0], 0.25)
+    inner_b = cv2.erode(((Pb - b[0].offset >= 0.75 * amp)).astype(np.uint8), kernel) > 0
+    missing = bare & inner_b & ~near(Pa, a[0], 0.25)
+    parts = cv2.morphologyEx(((unexplained | missing) & fa & fb).astype(np.uint8), cv2.MORPH_OPEN,
+                             cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(parts, connectivity=8)
+    areas = stats[1:, cv2.CC_STAT_AREA] if n > 1 else np.zeros(0)
+    big = areas[areas >= min_px]
+    return float(big.max()) if len(big) else 0.0
 
 
 # ---------------------------------------------------------------------- conversions
