@@ -1737,10 +1737,11 @@ def test_a_dot_that_only_one_pose_explains_sets_a_rival_aside_where_the_evidence
     img = (clean + rng.normal(0.0, 1.0, shape)).astype(np.float32)
     b = fit(-spacing)  # a row along
     assert 0 < evidence(img, a, b) < Settings.min_evidence  # the evidence cannot decide
-    assert contradicted(img, a, b, Settings.min_print_px) > 100  # a whole dot only ``a`` explains
-    assert contradicted(img, b, a, Settings.min_print_px) == 0  # nothing that only the rival explains
+    for_a, for_b = contradicted(img, a, b, Settings.min_print_px)
+    assert for_a > 100  # a whole dot only ``a`` explains
+    assert for_b == 0  # nothing that only the rival explains
     near = fit(0.0, 2.0)  # two pixels along: the widening forgives the edges that move
-    assert contradicted(img, a, near, Settings.min_print_px) == 0
+    assert contradicted(img, a, near, Settings.min_print_px)[0] == 0
     noisy = (clean + rng.normal(0.0, 40.0, shape)).astype(np.float32)
     a_noisy, b_noisy = fit(0.0, sigma=40.0), fit(-spacing, sigma=40.0)
-    assert contradicted(noisy, (a_noisy[0], a[1]), (b_noisy[0], b[1]), Settings.min_print_px) == 0
+    assert contradicted(noisy, (a_noisy[0], a[1]), (b_noisy[0], b[1]), Settings.min_print_px)[0] == 0

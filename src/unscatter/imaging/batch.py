@@ -325,7 +325,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
             # a rival that leaves a cured part unexplained, or predicts one where the image shows
             # none, while the best pose explains the image there and nowhere misses what the
             # rival explains (a dot array a row along, of which three dots printed): no rival
-            c_best, c_rival = contradicted(img, best, f, s.min_print_px), contradicted(img, f, best, s.min_print_px)
+            c_best, c_rival = contradicted(img, best, f, s.min_print_px)
             log.debug("rival %.1f px away at evidence %.1f: parts of %.0f px only the best pose explains, %.0f only the rival",
                       pose_distance(f[0].M, best[0].M, n, MARGIN), z, c_best, c_rival)
             if c_best > 0 and c_rival == 0:

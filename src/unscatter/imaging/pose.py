@@ -1241,13 +1241,14 @@ def evidence(img: np.ndarray, a: tuple, b: tuple, block: int = 8, clip: float = 
     return float(eb.sum() / den) if den > 0 else 0.0
 
 
-def contradicted(img: np.ndarray, a: tuple, b: tuple, min_px: int, widen: int = 3, factor: int = 1) -> float:
+def contradicted(img: np.ndarray, a: tuple, b: tuple, min_px: int, widen: int = 3) -> tuple[float, float]:
     """The largest part of the print (image px) where the image sides with fit ``a``
-    against fit ``b`` beyond any misfit of the template: polymer that ``a`` predicts
-    cured and ``b`` predicts nowhere near (``widen`` px around what it predicts), or a
-    part that ``b`` predicts cured well inside (at three quarters of the print's level)
-    where the image shows no polymer and ``a`` predicts none. Parts under ``min_px`` do
-    not count, nor any where the image's noise reaches half the print's level.
+    against fit ``b`` beyond any misfit of the template, and the same for ``b`` against
+    ``a``. A part for ``a``: polymer that ``a`` predicts cured and ``b`` predicts nowhere
+    near (``widen`` px around what it predicts), or a part that ``b`` predicts cured well
+    inside (at three quarters of the print's level) where the image shows no polymer and
+    ``a`` predicts none. Parts under ``min_px`` do not count; in an image whose fitted
+    noise is above an eighth of the print's level no part does.
 
     ``evidence`` weighs blocks of 8 px, so that a speck cannot decide; a print of a few
     small dots spans so few blocks that no rival reaches a z of 4 against it, however
@@ -1255,28 +1256,35 @@ def contradicted(img: np.ndarray, a: tuple, b: tuple, min_px: int, widen: int = 
     print's features that one pose explains and the other cannot (light cures no polymer
     where the scattered dose is nowhere near the threshold) is such a contradiction.
     """
-    Pa, fa = predicted_image(a[0], a[1], img.shape, factor)
-    Pb, fb = predicted_image(b[0], b[1], img.shape, factor)
+    Pa, fa = predicted_image(a[0], a[1], img.shape)
+    Pb, fb = predicted_image(b[0], b[1], img.shape)
     amp = min(print_level(*a), print_level(*b))
     if not amp > 0 or max(a[0].sigma, b[0].sigma) > 0.125 * amp:  # a noisy image: no part is clear
-        return 0.0
+        return 0.0, 0.0
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * widen + 1, 2 * widen + 1))
-
-    def near(P, f, level):  # where a fit predicts its print at ``level`` of the print's level or more, widened
-        return cv2.dilate(((P - f.offset >= level * amp) & np.isfinite(img)).astype(np.uint8), kernel) > 0
-
+    opening = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3))
     off = 0.5 * (a[0].offset + b[0].offset)
     polymer = np.nan_to_num(img, nan=off) - off >= 0.5 * amp
     bare = np.nan_to_num(img, nan=off + amp) - off < 0.25 * amp
-    unexplained = polymer & near(Pa, a[0], 0.25) & ~near(Pb, b[0], 0.25)
-    inner_b = cv2.erode(((Pb - b[0].offset >= 0.75 * amp)).astype(np.uint8), kernel) > 0
-    missing = bare & inner_b & ~near(Pa, a[0], 0.25)
-    parts = cv2.morphologyEx(((unexplained | missing) & fa & fb).astype(np.uint8), cv2.MORPH_OPEN,
-                             cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (3, 3)))
-    n, _, stats, _ = cv2.connectedComponentsWithStats(parts, connectivity=8)
-    areas = stats[1:, cv2.CC_STAT_AREA] if n > 1 else np.zeros(0)
-    big = areas[areas >= min_px]
-    return float(big.max()) if len(big) else 0.0
+    both = fa & fb
+
+    def near(P, f):  # where a fit predicts its print at a quarter of the print's level or more, widened
+        return cv2.dilate(((P - f.offset >= 0.25 * amp) & np.isfinite(img)).astype(np.uint8), kernel) > 0
+
+    def inner(P, f):  # where a fit predicts its print well inside: three quarters of its level, eroded
+        return cv2.erode((P - f.offset >= 0.75 * amp).astype(np.uint8), kernel) > 0
+
+    def largest(parts):
+        parts = cv2.morphologyEx((parts & both).astype(np.uint8), cv2.MORPH_OPEN, opening)
+        n, _, stats, _ = cv2.connectedComponentsWithStats(parts, connectivity=8)
+        areas = stats[1:, cv2.CC_STAT_AREA]
+        big = areas[areas >= min_px]
+        return float(big.max()) if len(big) else 0.0
+
+    near_a, near_b = near(Pa, a[0]), near(Pb, b[0])
+    for_a = (polymer & near_a & ~near_b) | (bare & inner(Pb, b[0]) & ~near_a)
+    for_b = (polymer & near_b & ~near_a) | (bare & inner(Pa, a[0]) & ~near_b)
+    return largest(for_a), largest(for_b)
 
 
 # ---------------------------------------------------------------------- conversions
