@@ -954,31 +954,6 @@ def test_batch_scale_is_one_magnification_only_when_the_prints_agree():
     assert batch_scale(fits([1.1] * (s.scale_min_prints - 1)), s) is None
 
 
-def test_few_prints_that_agree_on_a_scale_fail_a_print_far_off_it():
-    """Five prints fix their scale in a batch of one objective with no size stated (seed
-    5150417's lab 3): too few to hold the batch's other prints to it, but four agree
-    within 0.2 % and the fifth, a partial print 1.7 px off, is 0.95 % above them. On the
-    other four alone it is more than scale_sigmas spreads off; on all five (itself among
-    them) they agree on nothing, and prints of a zoom set per image agree on nothing."""
-    from unscatter.imaging.batch import Settings, few_prints_scale
-
-    s = Settings()
-    placed = {k: np.log(v) for k, v in dict(checkerboard_015=1.1330, circles_008=1.1314, circles_026=1.1344,
-                                            partial_018=1.1430, rectangles_002=1.1310).items()}
-    assert few_prints_scale(placed, s) is None  # 0.88 % off their median, beyond one_scale_within
-    others = few_prints_scale({k: v for k, v in placed.items() if k != "partial_018"}, s)
-    assert others is not None and others[2] == 4 and abs(np.exp(others[0]) - 1.1322) < 0.0001
-    assert abs(placed["partial_018"] - others[0]) > s.scale_sigmas * others[1]  # fails
-    for k in ("circles_008", "circles_026"):  # a print of the four is within the spread of the other four
-        rest = few_prints_scale({j: v for j, v in placed.items() if j != k}, s)
-        assert rest is None or abs(placed[k] - rest[0]) <= s.scale_sigmas * rest[1]
-    zoom = {str(i): np.log(v) for i, v in enumerate((0.82, 0.91, 1.0, 1.05))}
-    assert few_prints_scale(zoom, s) is None
-    assert few_prints_scale(dict(list(placed.items())[:2]), s) is None  # two: too few to agree on anything
-    one = few_prints_scale({str(i): np.log(1.1) + d for i, d in enumerate((0.0, 0.0001, -0.0001))}, s)
-    assert one[1] == s.min_scale_sd  # three that agree to the last digit are known within min_scale_sd
-
-
 def test_a_star_under_anisotropic_scatter_is_never_chosen_one_spoke_off():
     """36 spokes (10 deg) within a rotation range of +-12 deg, scatter 1.6 times wider one
     way: which turn of the star printed, only the scatter's direction tells, and the

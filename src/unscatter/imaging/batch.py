@@ -432,35 +432,6 @@ def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     return centre, max(spread, s.min_scale_sd)
 
 
-def few_prints_scale(placed: dict, s: Settings) -> tuple[float, float, int] | None:
-    """The scale that a few prints whose features' places fix theirs agree on (``placed``:
-    id -> log scale), in a batch with no stated camera pixel size and too few such prints
-    to call it one magnification (``batch_scale``): (their median log scale, its spread,
-    the prints), or None where they are fewer than ``stated_min_prints`` or any of them is
-    more than ``one_scale_within`` off their median (a zoom set per image). The spread is
-    their largest deviation from the median (of five or more, the second largest, as one
-    print's template may pull its scale far off), at least ``min_scale_sd``, as
-    ``stated_scales`` measures few prints.
-
-    It never holds a print: three to five prints of a zoom per image may agree by chance,
-    and a print held to them would pass at their scale. It fails a print whose scale lies
-    ``scale_sigmas`` spreads off the scale the batch's other such prints agree on (QC,
-    step 6): the print's own scale, resting on its features' sizes or pulled by its
-    template, is then likelier off than the magnification changed. In lab 3 of seed
-    5150417 (one objective at 1.1345, anisotropic scatter of 1.65, no size stated) five
-    prints fixed their scale: four within 0.2 % of 1.1322, and a partial print (a block
-    under a grey ramp) at 1.1430, `ok` 1.7 px off; it is 0.95 % off the other four, whose
-    spread is 0.19 %, and fails."""
-    if len(placed) < s.stated_min_prints:
-        return None
-    v = np.asarray(list(placed.values()), dtype=np.float64)
-    centre = float(np.median(v))
-    dev = np.sort(np.abs(v - centre))
-    if dev[-1] > s.one_scale_within:
-        return None
-    return centre, max(s.min_scale_sd, float(dev[-2] if len(v) >= 5 else dev[-1])), int(len(v))
-
-
 def one_magnification_held(one_scale: tuple, prints: int, s: Settings) -> tuple[float, float]:
     """The scale every print of a batch of one magnification is held to (``batch_scale``:
     its median log scale and single prints' spread, from ``prints`` prints): the median,
@@ -1295,14 +1266,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
     placed_scales = {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}
     stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo}, placed_scales, s)
-
-    def others_scale(mid):
-        """What the batch's other prints whose features fix their scale agree on, where
-        they are too few to hold it and no size is stated (``few_prints_scale``)."""
-        if held_scale is not None or mid in stated or len(placed_scales) >= s.scale_min_prints:
-            return None
-        return few_prints_scale({k: v for k, v in placed_scales.items() if k != mid}, s)
-
     if len(placed) < s.size_min_prints:
         # a small batch: its template's size error is assumed, not measured (README, "Small registration batches"):
         # the size spread of every print (size_spread) and the erosion of the faint test (5f) rest on size_sd,
@@ -1736,13 +1699,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
                            f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
-        few_scale = others_scale(mid)
-        if few_scale is not None and abs(log_scale(ch.fit.M) - few_scale[0]) > s.scale_sigmas * few_scale[1]:
-            reasons.append(f"scale {pose['scale']:.4f} off the {np.exp(few_scale[0]):.4f} that the batch's {few_scale[2]} "
-                           f"other prints whose features fix their scale agree on, by more than {s.scale_sigmas:g} times "
-                           f"their spread ({100 * few_scale[1]:.2f} %): the batch may have one magnification, which too "
-                           f"few prints show to hold a print to it"
-                           f"{no_size_note(mid)}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
