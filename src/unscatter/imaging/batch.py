@@ -288,15 +288,15 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
     field_set = None
 
     def field_set_rival(best, f, z):
-        """(evidence, share, pose) of rival ``f`` where it lays the same mask as ``best``
-        over the cured part and only the field sets them apart; None where it does not."""
+        """(evidence ``z``, share, ``f``, ``best``) where rival ``f`` lays the same mask as
+        ``best`` over the cured part and only the field sets them apart; None where it does not."""
         d = pose_distance(f[0].M, best[0].M, n, MARGIN)
         share, moved = mask_apart(m_full, best, f, img.shape, blur=min(2.0, d / 4))
         log.debug("field-set check: rival %.1f px away, its cured part moved %.1f px, evidence %.1f, masks apart "
                   "over %.4f of the cured part", d, moved, z, share)
         if share < s.field_set_share and moved > s.distinct_px:  # a period along, not a pose that differs
             # only where nothing cured (whose uncertainty the pose spread holds)
-            return z, share, f[0].M
+            return z, share, f, best
         return None
 
     def halfway(a, b):
@@ -319,9 +319,7 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
             best, f, z = f, best, -z
         if z >= s.min_evidence and (field_set is None or z < field_set[0]):  # for the final QC only: the prints the
             # template is fitted at stay those the whole image places
-            found_set = field_set_rival(best, f, z)
-            if found_set is not None:
-                field_set = (*found_set, f, best)
+            field_set = field_set_rival(best, f, z) or field_set
         if z < s.min_evidence:
             mid, z_mid = halfway(best, f)
             if z_mid <= -s.min_evidence and between < 2:  # the pose between them fits clearly better: refined, it competes
@@ -358,15 +356,16 @@ def choose_pose(mask: np.ndarray, img: np.ndarray, starts: list, x, s: Settings,
         # no rival by it, and was `ok` a spoke, 66 px, off)
         if in_range(alt, factor=float("inf")) and pose_distance(alt, best[0].M, n, MARGIN) > s.distinct_px:
             return PoseChoice(best[0], 0.0, alt, len(fits), float(np.degrees(np.arctan2(R[1, 0], R[0, 0]))))
-    if field_set is not None and field_set[4] is not best:
+    if field_set is not None and field_set[3] is not best:
         # found against a pose that a later rival beat: checked again against the chosen one (the
         # rival then may be the chosen pose itself, and the pose it was found against the rival)
-        other = field_set[4] if pose_distance(field_set[3][0].M, best[0].M, n, MARGIN) <= s.distinct_px else field_set[3]
+        _, _, f, anchor = field_set
+        other = anchor if pose_distance(f[0].M, best[0].M, n, MARGIN) <= s.distinct_px else f
         z = evidence(img, best, other)
         field_set = (field_set_rival(best, other, z) if z >= s.min_evidence
                      and pose_distance(other[0].M, best[0].M, n, MARGIN) > s.distinct_px else None)
-    return PoseChoice(best[0], z_min, rival, len(fits), field_set=None if field_set is None else field_set[:3],
-                      aside=z_aside)
+    return PoseChoice(best[0], z_min, rival, len(fits), aside=z_aside,
+                      field_set=None if field_set is None else (field_set[0], field_set[1], field_set[2][0].M))
 
 
 def determined(ch: PoseChoice, s: Settings) -> bool:
