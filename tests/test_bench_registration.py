@@ -448,13 +448,13 @@ def test_a_star_whose_scale_the_kernel_sets_is_not_ok_where_its_scale_is_free(tm
     kernel's step moves the scale where nothing holds it (``pose.kernel_spread``).
 
     Whether the registration lands on the wrong scale at all depends on the template the
-    batch fits (its hot spot) and even on the machine's rounding: on one machine the star
-    is found 3.2 px off and failed for the kernel's shape, on another 0.35 px off. What
-    must hold on every machine: the star is either registered within 1.5 px or failed
-    (for the kernel's shape where that is what leaves it open), and no print of the lab
-    is silently wrong. Before ``pose.kernel_spread`` the star was `ok` 3.24 px off."""
+    batch fits (its hot spot) and even on the machine's rounding: with the same code one
+    machine found the star 3.2 px off (and failed it for the kernel's shape), another
+    0.35 px off; with the hot spot's 4 folds it is 0.46 px off. What must hold on every
+    machine: the star is registered (within 1.5 px) or failed, never `empty`, and no
+    print of the lab is silently wrong (the star among them)."""
     bench = _bench()
     _, rows = bench.run_lab(6, 969263130, 32, tmp_path)
     row = next(r for r in rows if r["id"] == "siemens_star_028")
-    assert row["status"] in ("ok", "failed") and not bench.silently_wrong(row), row
+    assert row["status"] in ("ok", "failed"), row
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
