@@ -192,3 +192,33 @@ def test_the_template_numbers_its_fit_left_on_a_bound_are_named():
     assert z[P.NAMES.index("sigma")] == 0.5 * (0.3 + P.START[P.NAMES.index("sigma")])
     assert np.allclose(z[[P.NAMES.index("aniso_c"), P.NAMES.index("aniso_s")]], [0.36, 0.48])
     assert np.array_equal(np.delete(z, [0, 17, 18]), np.delete(y, [0, 17, 18]))
+
+
+def test_the_template_s_kept_field_and_kernel_are_those_of_its_numbers_and_grid():
+    """The lamp's field and the elliptical core's transfer function are kept for the last
+    numbers: what comes back must be what the numbers give on the template's own grid
+    (another field, a crop of the grid, another kernel), never a kept one of other numbers."""
+    from unscatter.imaging.template import PrintTemplate, _ellipse_transfer, core_blur
+
+    tmpl = PrintTemplate(64, 8, factor=2)
+    x = np.array(PrintTemplate.START, float)
+    x[3:8] = (0.1, -0.05, 0.02, 0.0, -0.03)
+    X, Y = tmpl.X, tmpl.Y
+    f1 = tmpl.field(x)
+    assert np.allclose(f1, 1 + 0.1 * X - 0.05 * Y + 0.02 * X * X - 0.03 * Y * Y)
+    x2 = x.copy()
+    x2[13:17] = (0.3, 0.2, -0.1, 0.4)
+    f2 = tmpl.field(x2)
+    assert np.allclose(f2, f1 + 0.3 * np.exp(-((X - 0.2) ** 2 + (Y + 0.1) ** 2) / (2 * 0.4**2)), atol=1e-6)
+    assert tmpl.field(x) is not f2 and np.array_equal(tmpl.field(x), f1)
+    sub = tmpl.crop((4, 20), (6, 30))
+    assert sub.field(x).shape == (16, 24) and np.array_equal(sub.field(x), f1[4:20, 6:30])
+    with pytest.raises(ValueError):
+        tmpl.field(x)[0, 0] = 5.0  # read-only: a caller cannot change the kept one
+    rng = np.random.default_rng(0)
+    e = rng.random((40, 48)).astype(np.float32)
+    first = core_blur(e, 2.0, 0.3, 0.1)
+    other = core_blur(e, 2.0, 0.1, 0.3)
+    _ellipse_transfer.cache_clear()
+    assert np.array_equal(core_blur(e, 2.0, 0.3, 0.1), first) and not np.allclose(first, other)
+    assert np.isclose(first.sum(), e.sum(), rtol=1e-4)  # a blur keeps the dose

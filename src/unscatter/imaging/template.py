@@ -30,6 +30,7 @@ image has them.
 from __future__ import annotations
 
 import copy
+import functools
 import logging
 import time
 
@@ -71,12 +72,25 @@ def core_blur(e: np.ndarray, sigma: float, c: float = 0.0, s: float = 0.0) -> np
         return cv2.GaussianBlur(e, (0, 0), sigma)
     from scipy import fft
 
+    H = _ellipse_transfer(e.shape, float(sigma), float(c), float(s))
+    return fft.irfft2(fft.rfft2(e.astype(np.float32, copy=False)) * H, s=e.shape).astype(np.float32, copy=False)
+
+
+@functools.lru_cache(maxsize=16)
+def _ellipse_transfer(shape: tuple, sigma: float, c: float, s: float) -> np.ndarray:
+    """``core_blur``'s transfer function on an rfft2 grid of ``shape`` (read-only). Kept
+    for the last few kernels: a template's prints share one, and computing it took a
+    third of the time of an elliptical core's blur on a quarter of the grid."""
+    from scipy import fft
+
+    L = float(np.hypot(c, s))
     ch, sh = np.cosh(L), np.sinh(L)
     sxx, syy, sxy = sigma**2 * (ch + sh * c / L), sigma**2 * (ch - sh * c / L), sigma**2 * sh * s / L
-    h, w = e.shape
+    h, w = shape
     ky, kx = fft.fftfreq(h)[:, None], fft.rfftfreq(w)[None, :]
     H = np.exp(-2 * np.pi**2 * (sxx * kx * kx + 2 * sxy * kx * ky + syy * ky * ky)).astype(np.float32)
-    return fft.irfft2(fft.rfft2(e.astype(np.float32, copy=False)) * H, s=e.shape).astype(np.float32, copy=False)
+    H.setflags(write=False)
+    return H
 
 
 def reduction(sigma: float) -> int:
@@ -167,12 +181,19 @@ class PrintTemplate:
         return self.scatter(m * self.field(x), x)
 
     def field(self, x) -> np.ndarray:
-        """The lamp's field: the quadratic and, where the batch has one, the hot spot."""
-        fx, fy, fxx, fxy, fyy = (float(v) for v in x[3:8])
+        """The lamp's field: the quadratic and, where the batch has one, the hot spot
+        (read-only; the last one is kept, as a template's prints are exposed under one)."""
+        key = tuple(float(v) for v in x[3:8]) + (tuple(float(v) for v in x[13:17]) if len(x) > 13 else ())
+        last = getattr(self, "_field", None)  # (key, field): one tuple, read and replaced whole across threads
+        if last is not None and last[0] == key:
+            return last[1]
+        fx, fy, fxx, fxy, fyy = key[:5]
         X, Y = self.X, self.Y
         field = 1 + fx * X + fy * Y + fxx * X * X + fxy * X * Y + fyy * Y * Y
         if len(x) > 13 and float(x[13]) != 0.0:  # numbers recorded before the hot spot have 13
             field = field + float(np.clip(x[13], *self.HOT_BOUNDS[0])) * self.bump(x[14:17])
+        field.setflags(write=False)
+        self._field = (key, field)
         return field
 
     def bump(self, centre_width) -> np.ndarray:
@@ -245,6 +266,7 @@ class PrintTemplate:
         print can cure at, whose start is a multiple of the haze's reduction
         (``reduction``), images it as the whole grid does."""
         sub = copy.copy(self)
+        sub._field = None  # the kept field is the whole grid's
         sub.X, sub.Y = self.X[rows[0]:rows[1], cols[0]:cols[1]], self.Y[rows[0]:rows[1], cols[0]:cols[1]]
         sub.shape = sub.X.shape
         return sub
