@@ -169,6 +169,7 @@ class PrintTemplate:
         # pixel centres: x_full = f x_small + (f - 1) / 2; X, Y in [-1, 1] over the design region
         ax = ((np.arange(n) * factor + (factor - 1) / 2) - (design_px + 2 * margin - 1) / 2) / ((design_px - 1) / 2)
         self.X, self.Y = np.meshgrid(ax.astype(np.float32), ax.astype(np.float32))
+        self._field = None  # (key, field): the lamp's field for the last numbers (``field``)
 
     def padded(self, mask: np.ndarray) -> np.ndarray:
         m = np.pad(mask.astype(np.float32) / 255.0, self.margin)
@@ -184,7 +185,7 @@ class PrintTemplate:
         """The lamp's field: the quadratic and, where the batch has one, the hot spot
         (read-only; the last one is kept, as a template's prints are exposed under one)."""
         key = tuple(float(v) for v in x[3:8]) + (tuple(float(v) for v in x[13:17]) if len(x) > 13 else ())
-        last = getattr(self, "_field", None)  # (key, field): one tuple, read and replaced whole across threads
+        last = self._field  # one tuple, read and replaced whole across threads
         if last is not None and last[0] == key:
             return last[1]
         fx, fy, fxx, fxy, fyy = key[:5]
