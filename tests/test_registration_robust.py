@@ -2,6 +2,7 @@
 images that are no prints, and pose priors from metadata."""
 
 import shutil
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from scipy import ndimage
@@ -1410,6 +1411,11 @@ def test_a_weak_hot_spot_near_the_limit_is_found_by_the_folds():
     x2, fit2 = fit_hot_spot(tmpl, pairs, x, fit)
     assert 0.2 < x2[13] < 0.4 and np.hypot(x2[14] - 0.6, x2[15] + 0.4) < 0.05, x2[13:17]
     assert fit2 > fit + 2e-4
+    # the registration runs the folds (and the centres of the search on all prints) in its threads: every fit
+    # depends on its own prints and start only, so the numbers are the same as one after the other
+    with ThreadPoolExecutor(2) as ex:
+        x3, fit3 = fit_hot_spot(tmpl, pairs, x, fit, pool=ex.map)
+    assert np.array_equal(x2, x3) and fit3 == fit2, (x2[13:17], x3[13:17])
 
 
 def test_no_hot_spot_is_found_where_the_field_is_smooth(hot_spot_prints):
