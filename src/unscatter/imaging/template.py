@@ -658,7 +658,9 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     used 1.5 to 2.0 px off. A bump taken is fitted on all prints and the other template
     numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held); it
     is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``pool``: a map over the
-    centres. Returns the numbers (always with the hot spot's four; ``hot`` zero where
+    centres of the search on all prints, then over the folds (each fold's centres in
+    turn; every fit depends on its own prints and start only, so the numbers are those
+    of one thread). Returns the numbers (always with the hot spot's four; ``hot`` zero where
     there is none) and their fit.
     """
     x = np.asarray(x, float)
