@@ -676,17 +676,17 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
         order = np.argsort([v[2] for v in found], kind="stable")
         return base, doses, found[order[0]][0], found[order[0]][1], [centres[i] for i in order]
 
-    base, doses, theta, d_hot, ranked = search(every, HOT_CENTRES, pool or map)
+    spread = pool or map  # the centres of the search on all prints, then the folds (docstring)
+    base, doses, theta, d_hot, ranked = search(every, HOT_CENTRES, spread)
     gain = every.mean_ncc(theta, d_hot) - every.mean_ncc(base, doses)
     held = np.nan
     if theta[5] >= 0.02 and gain >= min_gain:
-        def held_out(k):  # fold k's gains, its search made on the other prints (the folds in parallel, each one's
-            # centres in turn: each fit depends on its own prints and start only, so the numbers are those of any order)
+        def held_out(k):  # fold k's gains, its search made on the other prints, its centres in turn
             fold = every.subset([i for i in range(n) if i % folds == k])
             b, _, th, _, _ = search(every.subset([i for i in range(n) if i % folds != k]), ranked[:HOT_FOLD_STARTS], map)
             return fold.nccs(th, fold.fit(th, hold=True)[1]) - fold.nccs(b, fold.fit(b, hold=True)[1])
 
-        held = float(np.mean(np.concatenate(list((pool or map)(held_out, range(folds))))))
+        held = float(np.mean(np.concatenate(list(spread(held_out, range(folds))))))
     log.info("lamp hot spot: best %s gains mean NCC %.2g on the prints, %.2g held out over %d folds (%.1f s)",
              np.round(theta[5:], 3), gain, held, folds, time.perf_counter() - t0)
     if not (held >= min_gain and held >= gain / 3):
