@@ -70,9 +70,6 @@ class Settings:
     min_rotation_spread: float = 0.5  # ... the spread (deg) at least this (batch_rotation)
     max_size_sd: float = 1.5  # design px: a pose whose spread from its features' sizes is larger fails (a bound on a
     # systematic error, not a noise level: at 1.5 px the print may be as far off as 'silently wrong' means)
-    free_size_share: float = 0.5  # ... counted at this share where the print's scale is its own (not held to the
-    # batch's one magnification): such prints with a size spread of 1.5 to 3 px were all within 1.31 px of the truth
-    # (50 on 40 random labs), as close as the ok prints under 1.5 px; above 3 px 11 of 50 were further off (README)
     hold_size_sd: float = 0.75  # design px: a print whose spread from its features' sizes is larger, and whose
     # scale agrees with its stated camera pixel size, is held to that where it is known more closely than the batch's
     # one magnification (half max_size_sd: the size spread is a 1-sd estimate, 1.5 to 2.4 times off on some prints)
@@ -1700,11 +1697,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                         f"their stated sizes by {100 * scatter['spread']:.2f} %, more than their own spreads say, and its "
                         f"template misplaces their edges by {misfit:.2f} px")
             reasons.append(f"pose not determined by the print: {how}")
-        held_sizes = held_scale is not None and mid not in stated_held  # its turn or shift rest on its sizes
-        share = 1.0 if held_sizes else s.free_size_share  # the share of its size spread that counts
-        if not share * ch.fit.size_sd <= s.max_size_sd:
-            by = f"uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than {s.max_size_sd / share:g})"
-            if held_sizes:
+        if not ch.fit.size_sd <= s.max_size_sd:
+            by = f"uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than {s.max_size_sd})"
+            if held_scale is not None and mid not in stated_held:
                 reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its "
                                f"turn or shift still rests on the sizes of its features more than on where they lie (few, "
                                f"small or close together; a ring turns freely); {by}")
@@ -1712,15 +1707,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a "
                                f"grating printed as one) more than on where its features lie; "
                                f"{by}{stated_note or no_size_note(mid)}")
-        elif not np.hypot(share * ch.fit.size_sd, ch.fit.model_sd) <= s.max_size_sd:
-            counted = f", counted at {share:g}" if share != 1.0 else ""
+        elif not np.hypot(ch.fit.size_sd, ch.fit.model_sd) <= s.max_size_sd:
             reasons.append(f"pose not determined by the print: it rests on the shape of the scatter kernel, which the batch's "
                            f"template knows only roughly (an edge on a grey ramp or at a dose near the cure threshold, with "
                            f"no edge opposite it that moves alike): the fit moves it by {min(ch.fit.model_sd, 1e6):.2f} px "
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
-                           f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} "
-                           f"px{counted}), {min(float(np.hypot(share * ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more "
-                           f"than {s.max_size_sd}")
+                           f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
+                           f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
