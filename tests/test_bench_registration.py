@@ -460,3 +460,20 @@ def test_a_star_whose_scale_the_kernel_sets_is_not_ok_where_its_scale_is_free(tm
     row = next(r for r in rows if r["id"] == "siemens_star_028")
     assert row["status"] in ("ok", "failed"), row
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
+
+
+def test_a_grey_ramp_whose_fit_puts_its_edges_far_off_the_batchs_is_not_ok(tmp_path):
+    """Lab 6 of the registration benchmark's seed 1577074319 (a scatter of 11.1 um with a
+    tail of 28 %, 1.49-fold anisotropic, an erosion of 5.6 um): a block under a grey ramp
+    whose one sharp edge, at the ramp's bright end, eroded about 3 px more than the
+    batch's template predicts at its grey. The fit moved that edge's offset and the shift
+    along the ramp together: edge offsets of +3.0 px all round and +3.1 px on its vertical
+    edges, against the batch's -0.64 and +0.02 (spread 0.31 and 0.1 px), and the print was
+    `ok` 3.18 px off at a pose spread of 0.39 px and a size spread of 0.85 px. Refitted
+    with its offsets held at the batch's, the pose moves 4 px, and it fails for that
+    (step 5d''); no print of the lab is silently wrong."""
+    bench = _bench()
+    _, rows = bench.run_lab(6, 1577074319, 32, tmp_path)
+    row = next(r for r in rows if r["id"] == "partial_006")
+    assert row["status"] == "failed" and "edges off the batch's" in row["reason"], row
+    assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]

@@ -222,3 +222,19 @@ def test_the_template_s_kept_field_and_kernel_are_those_of_its_numbers_and_grid(
     _ellipse_transfer.cache_clear()
     assert np.array_equal(core_blur(e, 2.0, 0.3, 0.1), first) and not np.allclose(first, other)
     assert np.isclose(first.sum(), e.sum(), rtol=1e-4)  # a blur keeps the dose
+
+
+def test_a_fitted_pose_survives_pickle_and_copy():
+    """A Fit names its nuisance numbers through ``__getattr__``; pickle and copy look up
+    methods on an instance whose fields are not back yet, which must not recurse."""
+    import copy
+    import pickle
+
+    from unscatter.imaging.pose import Fit
+
+    f = Fit(M=np.eye(2, 3), gain=1.0, offset=0.0, q=np.array([1.1, 2.0, 0.0, 0.0, -0.5]), sigma=0.1, pose_sd=0.2,
+            converged=True, iterations=3)
+    for g in (pickle.loads(pickle.dumps(f)), copy.deepcopy(f)):
+        assert g.dose == 1.1 and g.edge == -0.5 and np.array_equal(g.M, f.M)
+    with pytest.raises(AttributeError):
+        f.edge_c2  # not among its numbers

@@ -90,6 +90,9 @@ class Settings:
     # is this uneven (robust sd over median): a warning (a stain, the lamp's field, a block not fully cured)
     marks_agree_px: float = 1.0  # design px: a print with registration marks whose pose on the marks alone is
     # further than this from the whole print's takes the marks' pose
+    edge_pull_sds: float = 6.0  # a print whose fitted edge offsets lie this many of the batch's spreads off the
+    # batch's (size_error) is refitted with them held there ...
+    edge_pull_px: float = 1.0  # ... and fails where that moves its pose further than this (design px, RMS over the field)
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
@@ -167,6 +170,7 @@ def first_pose(mask: np.ndarray, img: np.ndarray, s: Settings, scale: tuple):
 
 
 HELD_RESCALE = 0.002  # a print held to a scale (step 5c) this far (log) off it is refined from that scale
+EDGE_HOLD_SD = 1e-3  # design px: the prior sd that holds a print's edge offsets at the batch's (step 5d'')
 FAR_DEG, FAR_SCALE = 5.0, 1.1  # choose_pose: a coarse start this far beyond the searched rotations or scales stops
 SYMMETRY_FACTOR = 2  # choose_pose: the mask's turns onto itself are sought at half resolution (at a quarter, a fine
 # star's spokes merge: a 36-spoke star showed no symmetry and was `ok` two spokes, 77 px, off)
@@ -1354,6 +1358,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             seen = imaged(mid, ch.fit)
             merged = seen is not None and merged_features(ndimage.gaussian_filter(seen, 1.0), padded,
                                                           level=0.5 * float(T.max()))
+        if merged:
+            joined.add(mid)
         sd = None if merged else edge_sd
         sized = spreads[mid][1] > s.max_pose_sd
         edges = not merged and sized and len(placed) >= s.size_min_prints
@@ -1375,7 +1381,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
-            f.scale_held = held_at is not None
+            f.scale_held, f.scale_prior = held_at is not None, held_at
             Tf = predicted_print(full, B, x, f)
             f.size_sd, f.sizes_sd = spreads_of(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
                                                dose_response(full, B, x, f, Tf), dose_ref)
@@ -1430,6 +1436,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 stated_held.add(mid)
         return f
 
+    joined = set()  # prints that join parts of their mask into one feature (held: their size is unknown)
     for mid, f in zip(todo, pool.map(held, todo)):
         choices[mid].fit = f
     del spreads
@@ -1482,6 +1489,39 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     fitted = [mid for mid in todo if choices[mid].fit is not None]
     for mid, moved in zip(fitted, pool.map(kernel_moved, fitted)):
         choices[mid].fit.model_sd = moved
+
+    # 5d''. a print whose fit puts its edges far off the batch's. Erosion and anisotropic
+    # scattering are the batch's, so a print's fitted edge offsets (all round, and by
+    # direction) differ from the batch's by little (size_error's spread); where they differ
+    # by edge_pull_sds spreads or more, the template does not describe the print (a grey
+    # ramp whose cut the dose places and whose one sharp edge eroded more than the template
+    # predicts at its grey), and the pose may trade against them: the offsets and the
+    # shift along the ramp moved together, and a ramp of seed 1577074319's lab 6 was `ok`
+    # 3.2 px off with an offset of +3.1 px on its vertical edges against the batch's +0.02
+    # +- 0.1. Such a print is refitted with its offsets held at the batch's, and fails
+    # where that moves its pose by more than edge_pull_px: one of the two poses is then off
+    # by half that at least, and the print's spreads, which count its offsets within the
+    # batch's spread, do not say which. Not for a print that joins parts of its mask (a
+    # grating printed as one block): its size is unknown (held), its offsets are free. A
+    # print whose scale step 5c held is refitted held to the same scale.
+    names = ("edge", "edge_c2", "edge_s2")
+    held_edges = {n: (c, EDGE_HOLD_SD) for n, c in zip(names, centre)}
+
+    def edge_pull(mid):
+        f = choices[mid].fit
+        z = max(abs(getattr(f, n) - c) / sd for n, c, sd in zip(names, centre, edge_sd))
+        if not z > s.edge_pull_sds:
+            return None
+        g = refine(smooth[mid], f, full, exposure_of(mid), x, s.mode, iters=12, prior=held_edges,
+                   scale_prior=f.scale_prior)
+        return z, pose_distance(f.M, g.M, grid, MARGIN)
+
+    pulled = {}  # id -> (how many spreads its offsets lie off the batch's, how far holding them moves its pose)
+    cands = [mid for mid in todo if choices[mid].fit is not None and mid not in posed_on_marks and mid not in joined]
+    for mid, r in zip(cands, pool.map(edge_pull, cands)):
+        if r is not None:
+            pulled[mid] = r
+            log.info("%s: edge offsets %.1f of the batch's spreads off its; held there, the pose moves %.2f px", mid, *r)
 
     # 5e. the images the prints are thresholded on. A stain is the image's, not the print's:
     # thresholded as it is, a print's dim part comes out too small and its bright part too
@@ -1714,6 +1754,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
                            f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
+        if mid in pulled and pulled[mid][1] > s.edge_pull_px:
+            f = ch.fit
+            reasons.append(f"pose rests on edges off the batch's: its fitted edge offsets (all round {f.edge:+.2f} px, by "
+                           f"direction {f.edge_c2:+.2f}, {f.edge_s2:+.2f}) lie {pulled[mid][0]:.0f} times the batch's "
+                           f"spread off the batch's ({centre[0]:+.2f}, {centre[1]:+.2f}, {centre[2]:+.2f} +- "
+                           f"{edge_sd[0]:.2f}, {edge_sd[1]:.2f} px), and with them held there its pose moves "
+                           f"{pulled[mid][1]:.2f} px (more than {s.edge_pull_px}): the batch's template does not describe "
+                           f"the print (a grey ramp's one sharp edge at its grey, a cure it does not predict)")
         if off_scale(ch.fit.M):
             reasons.append(f"scale {pose['scale']:.4f} off the batch's {np.exp(one_scale[0]):.4f} by more than "
                            f"{s.scale_sigmas:g} times its spread ({100 * one_scale[1]:.2f} %): one magnification imaged "
@@ -1784,7 +1832,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    one_magnification=None if one_scale is None else dict(
                                                        scale=float(np.exp(one_scale[0])), spread=one_scale[1], prints=len(placed),
                                                        held_within=held_scale[1]),
-                                                   edge_places=edge_places, feature_sizes=feature_sizes, empty_cure_test=cure_test,
+                                                   edge_places=edge_places, feature_sizes=feature_sizes,
+                                                   edge_pull=dict(sds=s.edge_pull_sds, px=s.edge_pull_px, refitted=len(pulled),
+                                                                  moved=sorted(mid for mid, r in pulled.items()
+                                                                               if r[1] > s.edge_pull_px)),
+                                                   empty_cure_test=cure_test,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
                                                                      width_counted=False, prints=kernel_prints),

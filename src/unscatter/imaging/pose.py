@@ -246,10 +246,13 @@ class Fit:
     sizes_sd: float = float("nan")
     joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
     scale_held: bool = False  # refined with its scale held (``refine``'s ``scale_prior``): the batch's, or a stated one
+    scale_prior: tuple | None = None  # ... that prior (mean log scale, sd), where the batch set it (batch step 5c)
     # pose spread from the batch's scatter kernel being known only in shape so well (design px; ``kernel_spread``)
     model_sd: float = 0.0
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
+        if name == "q":  # not set yet (pickle and copy look for methods before the fields are back)
+            raise AttributeError(name)
         if name in Q_NAMES[: len(self.q)]:
             return float(self.q[Q_NAMES.index(name)])
         raise AttributeError(name)
