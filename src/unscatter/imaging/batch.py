@@ -1504,12 +1504,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     # batch's spread, do not say which. Not for a print that joins parts of its mask (a
     # grating printed as one block): its size is unknown (held), its offsets are free. A
     # print whose scale step 5c held is refitted held to the same scale.
-    names = ("edge", "edge_c2", "edge_s2")
-    held_edges = {n: (c, EDGE_HOLD_SD) for n, c in zip(names, centre)}
+    held_edges = {n: (c, EDGE_HOLD_SD) for n, (c, _) in edge_prior.items()}
 
     def edge_pull(mid):
         f = choices[mid].fit
-        z = max(abs(getattr(f, n) - c) / sd for n, c, sd in zip(names, centre, edge_sd))
+        z = max(abs(getattr(f, n) - c) / sd for n, (c, sd) in edge_prior.items())
         if not z > s.edge_pull_sds:
             return None
         g = refine(smooth[mid], f, full, exposure_of(mid), x, s.mode, iters=12, prior=held_edges,
