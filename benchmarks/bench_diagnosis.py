@@ -604,6 +604,19 @@ def power(rows: list) -> list[str]:
     if outside:
         fl = sum(r["unexplained"] != "-" for r in outside)
         out.append(f"outside effects flagged unexplained: {fl} of {len(outside)} ({100 * fl / len(outside):.0f} %)")
+        # what there is to find: an outside effect that Eq. 1 already predicts at the floor leaves no
+        # residual for any test (the library effects' table by what Eq. 1 leaves, above, likewise)
+        key = "pooled_iou_eq1" if "pooled_iou_eq1" in outside[0] else "iou_eq1"
+        floor = "pooled_iou_floor" if key == "pooled_iou_eq1" else "iou_floor"
+        out.append("outside effects against what Eq. 1 leaves to explain (held-out IoU"
+                   + (", pooled" if key == "pooled_iou_eq1" else "") + ": the floor minus Eq. 1's): flagged / "
+                   "named a library effect / neither")
+        for a, b in zip([-1.0, 0.0, 0.005, 0.01, 0.02], [0.0, 0.005, 0.01, 0.02, 1.0]):
+            sel = [r for r in outside if a <= r[floor] - r[key] < b]
+            if sel:
+                f_ = sum(r["unexplained"] != "-" for r in sel)
+                n_ = sum(r["unexplained"] == "-" and r["named"] != "-" for r in sel)
+                out.append(f"  {a:+.3f}..{b:+.3f}: {f_} / {n_} / {len(sel) - f_ - n_} of {len(sel)}")
     return out
 
 

@@ -691,14 +691,15 @@ def test_an_ellipse_s_angle_wraps_instead_of_stopping_at_a_bound():
     assert on_bounds(folds, pa.bounds, ["aniso_angle_deg"]) == {"aniso_angle_deg": "upper"}
 
 
-def _bench_fit_recovery():
+def _bench(name: str = "bench_fit_recovery"):
+    """A benchmark script as a module (benchmarks/<name>.py)."""
     import importlib.util
     import sys
 
     root = Path(__file__).resolve().parents[1] / "benchmarks"
-    sys.path.insert(0, str(root))  # it imports its sibling bench_diagnosis
+    sys.path.insert(0, str(root))  # bench_fit_recovery imports its sibling bench_diagnosis
     try:
-        spec = importlib.util.spec_from_file_location("bench_fit_recovery", root / "bench_fit_recovery.py")
+        spec = importlib.util.spec_from_file_location(name, root / f"{name}.py")
         mod = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(mod)
     finally:
@@ -732,7 +733,7 @@ def test_a_candidate_fit_reaches_the_optimum_of_its_family(effect, seed, tmp_pat
     2.6 % above); it must predict fresh prints within 2 % of the truth's error, and its
     parameters must lie within the reported spread of the truth (3.18 spreads: the 95 %
     point of a t with the k - 1 = 3 degrees of freedom of the 4 fold fits)."""
-    bench = _bench_fit_recovery()
+    bench = _bench()
     rng = np.random.default_rng(seed)
     truth = bench.draw_truth(rng, effect)
     base = default_params("eq1", pixel_size_um=5.0)
@@ -759,3 +760,21 @@ def test_a_candidate_fit_reaches_the_optimum_of_its_family(effect, seed, tmp_pat
     for k in (sp.name for sp in EFFECTS[effect].params):
         z = abs(bench.param_error(k, fv[k], tv[k])) / spread[k]["std"]
         assert z <= 3.18, (k, fv[k], tv[k], spread[k]["std"])
+
+
+def test_power_study_splits_outside_effects_by_what_eq1_leaves_to_find():
+    """The power study's outside-effect table: flagged / named / neither, by Eq. 1's pooled
+    held-out gap to the floor (an effect that Eq. 1 predicts at the floor leaves nothing to flag)."""
+    bench = _bench("bench_diagnosis")
+
+    def lab(gap, unexplained="-", named="-"):
+        return dict(effect="outside", named=named, unexplained=unexplained, verdict="x", pooled_iou_eq1=0.9 - gap,
+                    pooled_iou_floor=0.9, iou_eq1=0.0, iou_floor=0.0)
+
+    rows = [lab(-0.003), lab(-0.001, named="dose_nonlinearity"), lab(0.002, unexplained="position"), lab(0.015),
+            lab(0.012, named="heavy_tail"), lab(0.03, unexplained="grey_level")]
+    out = bench.power(rows)
+    assert "outside effects flagged unexplained: 2 of 6 (33 %)" in out
+    table = {ln.split(":")[0].strip(): ln.split(":")[1].strip() for ln in out if ln.startswith("  ") and ".." in ln}
+    assert table == {"-1.000..+0.000": "0 / 1 / 1 of 2", "+0.000..+0.005": "1 / 0 / 0 of 1",
+                     "+0.010..+0.020": "0 / 1 / 1 of 2", "+0.020..+1.000": "1 / 0 / 0 of 1"}
