@@ -488,7 +488,7 @@ def test_a_grey_ramps_pose_rests_on_the_shape_of_the_kernel():
         img = cv2.GaussianBlur(img + np.random.default_rng(0).normal(0, 0.02, img.shape).astype(np.float32), (0, 0), 1.0)
         B = tmpl.exposure(m, x)
         fit = refine(img, M0, tmpl, B, x, iters=30, scale_prior=(0.0, 0.001))
-        fit.scale_held = True
+        assert fit.scale_held  # refined with the scale held: kernel_moves holds it too
         moved[name] = pose_distance(fit.M, M0, n + 2 * MARGIN, MARGIN)
         spread[name], shares = kernel_moves(tmpl, m, B, x, fit, "similarity", image=img)
         share[name] = shares["tail"]

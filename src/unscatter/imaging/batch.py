@@ -1381,7 +1381,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             # itself: the free fit may not have only because it slid along the scale that its
             # features' sizes trade against, which the scale now holds
             f.converged = f.converged if held_at is not None else ch.fit.converged
-            f.scale_held, f.scale_prior = held_at is not None, held_at
             Tf = predicted_print(full, B, x, f)
             f.size_sd, f.sizes_sd = spreads_of(Tf, s.mode, sd, held_at[1] if held_at else None, place_sd, imaged(mid, f),
                                                dose_response(full, B, x, f, Tf), dose_ref)

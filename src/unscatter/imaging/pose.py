@@ -245,10 +245,15 @@ class Fit:
     # pose rests on its features' sizes alone, which decides how a stated pixel size holds it
     sizes_sd: float = float("nan")
     joined: bool = False  # refine stopped on reaching one of the poses it was given (``known``)
-    scale_held: bool = False  # refined with its scale held (``refine``'s ``scale_prior``): the batch's, or a stated one
-    scale_prior: tuple | None = None  # ... that prior (mean log scale, sd), where the batch set it (batch step 5c)
+    # refined with its scale held: ``refine``'s ``scale_prior`` (mean log scale, sd), the batch's or a stated one
+    scale_prior: tuple | None = None
     # pose spread from the batch's scatter kernel being known only in shape so well (design px; ``kernel_spread``)
     model_sd: float = 0.0
+
+    @property
+    def scale_held(self) -> bool:
+        """Refined with its scale held (``scale_prior``)."""
+        return self.scale_prior is not None
 
     def __getattr__(self, name):  # dose, blur, grad_x, grad_y, edge
         if name == "q":  # not set yet (pickle and copy look for methods before the fields are back)
@@ -529,7 +534,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if known:
             here = (Ms @ S_inv)[:2]
             if any(pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX for K in known):
-                return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=True)
+                return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=True,
+                           scale_prior=None if scale_prior is None else tuple(scale_prior))
         if outside is not None:
             away = away + 1 if outside((Ms @ S_inv)[:2], gain) else 0
             if away >= OUTSIDE_STEPS:
@@ -542,7 +548,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             a = _log_scale_row(npose, mode)
             sd = float(np.hypot(sd, _field_rms(np.outer(a, a) * scale_prior[1] ** 2, mode, corners) * f))
     M_full = (Ms @ S_inv)[:2]
-    return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it)
+    return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it,
+               scale_prior=None if scale_prior is None else tuple(scale_prior))
 
 
 # refine: a step that raises the objective by more than this share is refused. The pose's
