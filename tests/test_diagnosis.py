@@ -691,7 +691,7 @@ def test_an_ellipse_s_angle_wraps_instead_of_stopping_at_a_bound():
     assert on_bounds(folds, pa.bounds, ["aniso_angle_deg"]) == {"aniso_angle_deg": "upper"}
 
 
-def _bench(name: str = "bench_fit_recovery"):
+def _bench(name: str):
     """A benchmark script as a module (benchmarks/<name>.py)."""
     import importlib.util
     import sys
@@ -733,7 +733,7 @@ def test_a_candidate_fit_reaches_the_optimum_of_its_family(effect, seed, tmp_pat
     2.6 % above); it must predict fresh prints within 2 % of the truth's error, and its
     parameters must lie within the reported spread of the truth (3.18 spreads: the 95 %
     point of a t with the k - 1 = 3 degrees of freedom of the 4 fold fits)."""
-    bench = _bench()
+    bench = _bench("bench_fit_recovery")
     rng = np.random.default_rng(seed)
     truth = bench.draw_truth(rng, effect)
     base = default_params("eq1", pixel_size_um=5.0)

@@ -400,6 +400,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     iteration limit, to a pose that is dropped.
     """
     q0, qs = _prior(x, prior)
+    held = None if scale_prior is None else tuple(scale_prior)  # the fit records it (``Fit.scale_held``)
     if isinstance(fit_or_M, Fit):
         M, gain, offset, q = fit_or_M.M, fit_or_M.gain, fit_or_M.offset, fit_or_M.q.copy()
         q = np.r_[q, q0[len(q):]][: len(q0)]  # brightness slopes from none where the batch has since found a stain
@@ -535,7 +536,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             here = (Ms @ S_inv)[:2]
             if any(pose_distance(here, K, tmpl.design_px + 2 * tmpl.margin, tmpl.margin) < JOIN_PX for K in known):
                 return Fit(here, float(gain), float(offset), q, sigma, float("nan"), False, it, joined=True,
-                           scale_prior=None if scale_prior is None else tuple(scale_prior))
+                           scale_prior=held)
         if outside is not None:
             away = away + 1 if outside((Ms @ S_inv)[:2], gain) else 0
             if away >= OUTSIDE_STEPS:
@@ -548,8 +549,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             a = _log_scale_row(npose, mode)
             sd = float(np.hypot(sd, _field_rms(np.outer(a, a) * scale_prior[1] ** 2, mode, corners) * f))
     M_full = (Ms @ S_inv)[:2]
-    return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it,
-               scale_prior=None if scale_prior is None else tuple(scale_prior))
+    return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it, scale_prior=held)
 
 
 # refine: a step that raises the objective by more than this share is refused. The pose's
