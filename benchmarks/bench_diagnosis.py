@@ -545,6 +545,15 @@ def random_labs(args) -> None:
     print("\n" + summary(lab_rows))
 
 
+def binned(rows: list, size, edges: list):
+    """(lo, hi, rows) for each bin lo <= size(row) < hi between consecutive ``edges`` that
+    holds a row: the power study's tables by an effect's size."""
+    for a, b in zip(edges[:-1], edges[1:]):
+        sel = [r for r in rows if a <= size(r) < b]
+        if sel:
+            yield a, b, sel
+
+
 def power(rows: list) -> list[str]:
     """The power study's tables: confusion matrix (true effect x what was named), the
     library effects named against their size (1 - IoU of the lab's noise-free prints with
@@ -562,27 +571,20 @@ def power(rows: list) -> list[str]:
     lib = [r for r in rows if r["effect"] not in OUTSIDE and r["effect"] != "none"]
     if lib:
         out += ["", "library effects named against their size (1 - IoU, the lab's noise-free prints with vs without):"]
-        edges = [0.0, 0.002, 0.005, 0.01, 0.02, 0.05, 1.0]
-        for a, b in zip(edges[:-1], edges[1:]):
-            sel = [r for r in lib if a <= 1 - r["effect_iou"] < b]
-            if sel:
-                right = sum(r["verdict"] == "right" for r in sel)
-                out.append(f"  {a:.3f}-{b:.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
+        for a, b, sel in binned(lib, lambda r: 1 - r["effect_iou"], [0.0, 0.002, 0.005, 0.01, 0.02, 0.05, 1.0]):
+            right = sum(r["verdict"] == "right" for r in sel)
+            out.append(f"  {a:.3f}-{b:.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
         out.append("library effects named against what Eq. 1 leaves to explain (held-out IoU: the floor minus Eq. 1's):")
-        for a, b in zip([-1.0, 0.0, 0.005, 0.01, 0.02, 0.05], [0.0, 0.005, 0.01, 0.02, 0.05, 1.0]):
-            sel = [r for r in lib if a <= r["iou_floor"] - r["iou_eq1"] < b]
-            if sel:
-                right = sum(r["verdict"] == "right" for r in sel)
-                out.append(f"  {a:+.3f}..{b:+.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
+        for a, b, sel in binned(lib, lambda r: r["iou_floor"] - r["iou_eq1"], [-1.0, 0.0, 0.005, 0.01, 0.02, 0.05, 1.0]):
+            right = sum(r["verdict"] == "right" for r in sel)
+            out.append(f"  {a:+.3f}..{b:+.3f}: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
         if "trial_share" in lib[0]:  # runs before it lack the trial prints' share
             out.append("library effects named against what the trial prints show of them (Eq. 1 calibrated on the lab's "
                        "noise-free trial prints: the mismatch it leaves there, over Eq. 1's held-out mismatch on the lab's "
                        "prints; the diagnosis accepts a gain of at least 3 %):")
-            for a, b in zip([0.0, 0.015, 0.03, 0.06, 0.12, 0.25], [0.015, 0.03, 0.06, 0.12, 0.25, np.inf]):
-                sel = [r for r in lib if a <= r["trial_share"] < b]
-                if sel:
-                    right = sum(r["verdict"] == "right" for r in sel)
-                    out.append(f"  {100 * a:4.1f}..{100 * b:4.1f} %: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
+            for a, b, sel in binned(lib, lambda r: r["trial_share"], [0.0, 0.015, 0.03, 0.06, 0.12, 0.25, np.inf]):
+                right = sum(r["verdict"] == "right" for r in sel)
+                out.append(f"  {100 * a:4.1f}..{100 * b:4.1f} %: {right} of {len(sel)} named right ({100 * right / len(sel):.0f} %)")
             base = [r["trial_share"] for r in rows if r["effect"] == "none"]
             if base:
                 out.append(f"  (no-effect labs, the calibration's own shortfall on noise-free prints: "
@@ -611,12 +613,10 @@ def power(rows: list) -> list[str]:
         out.append("outside effects against what Eq. 1 leaves to explain (held-out IoU"
                    + (", pooled" if key == "pooled_iou_eq1" else "") + ": the floor minus Eq. 1's): flagged / "
                    "named a library effect / neither")
-        for a, b in zip([-1.0, 0.0, 0.005, 0.01, 0.02], [0.0, 0.005, 0.01, 0.02, 1.0]):
-            sel = [r for r in outside if a <= r[floor] - r[key] < b]
-            if sel:
-                f_ = sum(r["unexplained"] != "-" for r in sel)
-                n_ = sum(r["unexplained"] == "-" and r["named"] != "-" for r in sel)
-                out.append(f"  {a:+.3f}..{b:+.3f}: {f_} / {n_} / {len(sel) - f_ - n_} of {len(sel)}")
+        for a, b, sel in binned(outside, lambda r: r[floor] - r[key], [-1.0, 0.0, 0.005, 0.01, 0.02, 1.0]):
+            f_ = sum(r["unexplained"] != "-" for r in sel)
+            n_ = sum(r["unexplained"] == "-" and r["named"] != "-" for r in sel)
+            out.append(f"  {a:+.3f}..{b:+.3f}: {f_} / {n_} / {len(sel) - f_ - n_} of {len(sel)}")
     return out
 
 
