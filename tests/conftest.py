@@ -1,7 +1,13 @@
 import numpy as np
 import pytest
+import torch
 
 from unscatter.io import write_png
+
+# One torch thread for the whole suite, whatever the machine's cores and whichever tests run:
+# a fit's float sums then add in one order, and a test that compares a fit with its start
+# (tests/test_diagnosis.py) gives the same verdict alone and in the full suite.
+torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="session")

@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 from unscatter.calibration3d import KINDS3D, fit_depth, trial_masks3d, voxel_prints
 from unscatter.metrics import iou
 from unscatter.model import default_params
 
-torch.set_num_threads(1)
 PX, DZ = 2.96, 50.0
 
 

@@ -14,7 +14,6 @@ from unscatter.compensation3d import best_uniform_dose, load_depth, optimise_lay
 from unscatter.io import InputError, read_mask, write_png
 from unscatter.model import default_params, layer_dose, save_params
 
-torch.set_num_threads(1)
 PX, DZ = 2.96, 50.0
 DEPTH = dict(att_length_um=80.0, diffusion_um=4.0, layer_um=DZ)
 
