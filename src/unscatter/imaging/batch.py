@@ -931,18 +931,30 @@ def _overlay(reg: np.ndarray, mask: np.ndarray, printed: np.ndarray, dense: floa
 _REG = REGISTRATION.default
 
 
-def one_blas_thread(when: bool = True):
-    """A context in which OpenBLAS runs on one thread (``threadpoolctl``), when ``when``.
+@contextlib.contextmanager
+def one_library_thread():
+    """A context in which OpenBLAS (``threadpoolctl``) and OpenCV run on one thread
+    each, whatever ``Settings.threads``: registration's own threads work on the prints.
 
-    Registration works on its prints in parallel threads; the matrix products of each
-    step are small, and OpenBLAS's own threads, two per product on two cores, spin while
-    they wait. On seed 172094's lab 4 (32 prints of 970 x 939) they took a third of the
-    CPU time: 66 to 91 s per batch, 49 to 51 s with one BLAS thread."""
-    if not when:
-        return contextlib.nullcontext()
+    The matrix products of each step are small, and OpenBLAS's own threads, two per
+    product on two cores, spin while they wait: on seed 172094's lab 4 (32 prints of
+    970 x 939) they took a third of the CPU time, 66 to 91 s per batch against 49 to 51 s
+    with one BLAS thread. And a batch registers alike at any thread count and on every
+    run: with BLAS at two threads for one registration thread, its sums added in another
+    order, the template fit of seed 1985358721's lab 6 came to another optimum (sigma
+    2.38 against 2.51 px) and a cut-off grating was `ok` a pitch (30 px) off that two
+    threads registered right; with OpenCV's own threads as well, 2 of 10 runs of one
+    small batch at two registration threads wrote another registration.yaml in the last
+    digits (0 of 10 with OpenCV at one thread; 0 of 6 at one registration thread)."""
     from threadpoolctl import threadpool_limits
 
-    return threadpool_limits(limits=1, user_api="blas")
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def register_batch(batch_dir, out_dir, mode=_REG.mode, level=_REG.level, min_score=_REG.min_score,
@@ -957,7 +969,7 @@ def register_batch(batch_dir, out_dir, mode=_REG.mode, level=_REG.level, min_sco
     checked = REGISTRATION.make(mode=mode, level=level, min_score=min_score, skip_failed=skip_failed)
     s = Settings(mode=checked.mode, level=checked.level, min_score=checked.min_score, skip_failed=checked.skip_failed, **kw)
     batch = open_batch(batch_dir)
-    with output_dir(out_dir, command="register", inputs=[batch_dir]) as tmp, one_blas_thread(s.threads > 1):
+    with output_dir(out_dir, command="register", inputs=[batch_dir]) as tmp, one_library_thread():
         rows = _register(batch, Path(batch_dir), tmp, Path(out_dir), s, progress)
     failed = [r for r in rows if r["status"] == "failed"]
     for r in failed:
