@@ -527,11 +527,10 @@ def _methods(values) -> dict:
 
 
 def _summary_lines(rows) -> None:
-    from .benchmark import summarise
+    from .benchmark import summarise, summary_line
 
     for s in summarise(rows):
-        click.echo(f"{s['variant']:<16} IoU {s['iou']:.3f}  pixel error {s['pixel_error']:.3f}  EPE {s['epe_um']:.1f} um  "
-                   f"PV band {s['pv_band_um']:.1f} um  ({s['designs']} designs)")
+        click.echo(summary_line(s))
 
 
 _method_option = click.option("--method", "methods", multiple=True, metavar="NAME=FOLDER",
