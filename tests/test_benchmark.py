@@ -195,32 +195,39 @@ def test_a_missing_print_is_reported_not_scored(setup):
     assert rows[IDENTICAL]["status"] == "ok" and not math.isnan(rows[IDENTICAL]["pv_band_um"])
 
 
-def test_masks_are_compared_on_the_designs_that_all_of_them_printed(setup):
+def test_masks_are_compared_on_the_designs_that_all_of_them_printed(setup, tmp_path):
     """A mask whose print of one design failed registration is averaged over the other
     designs only; the ``common_*`` columns hold every mask to the same designs, and the
     summary names the design a mask has no print of (seen: the default run's star failed
     for three methods, and identical 100 % kept it: 0.920 over 6 designs, 0.907 over the
     5 that every mask printed)."""
-    from unscatter.benchmark import common_designs, summarise, summary_line
+    from unscatter.benchmark import common_designs, fig_bars, summarise, summary_line
 
     _, params, designs = setup
     prints = {}
     for name in ("cross", "star"):
         d = read_mask(designs / f"{name}.png") != 0
         prints[print_id(name, IDENTICAL)] = simulate(params, identical_mask(d))
+        prints[print_id(name, IDENTICAL, 0.5)] = None  # nothing to register at half grey
         prints[print_id(name, "ilt")] = d.copy()  # a perfect print: IoU 1
     prints[print_id("star", "ilt")] = None  # failed registration
     rows = score_prints(prints, designs, PX_UM)
     assert common_designs(rows) == ["cross"]
     s = {r["variant"]: r for r in summarise(rows)}
-    ident = {r["design"]: r["iou"] for r in rows if r["method"] == IDENTICAL}
+    ident = {r["design"]: r["iou"] for r in rows if r["method"] == IDENTICAL and r["mask_dose"] == 1.0}
     assert s["ilt"]["designs"] == 1 and s["ilt"]["no_print"] == "star" and s["ilt"]["common_iou"] == 1.0
     assert s["identical 100 %"]["designs"] == 2 and s["identical 100 %"]["common_designs"] == 1
     assert s["identical 100 %"]["iou"] == pytest.approx(np.mean(list(ident.values())))
     assert s["identical 100 %"]["common_iou"] == pytest.approx(ident["cross"])
     assert ident["cross"] != ident["star"]  # so the two means differ, and the check above can fail
-    assert "no print of star" in summary_line(s["ilt"])
-    assert "on the 1 designs that every full-grey mask printed" in summary_line(s["identical 100 %"])
+    assert s["identical 50 %"]["no_print"] == "cross,star" and math.isnan(s["identical 50 %"]["common_iou"])
+    assert "no print of star" in summary_line(s["ilt"]) and "(1 design)" in summary_line(s["ilt"])
+    assert "on the 1 designs that every full-grey mask printed: IoU" in summary_line(s["identical 100 %"])
+    fig_bars(tmp_path / "bars.png", list(s.values()))
+    assert (tmp_path / "bars.png").stat().st_size > 0
+    # no mask at full grey: nothing in common, and no line claims a comparison on it
+    half = [r for r in rows if r["mask_dose"] != 1.0]
+    assert common_designs(half) == [] and "every full-grey" not in summary_line(summarise(half)[0])
 
 
 # ------------------------------------------------------------------ a measured batch

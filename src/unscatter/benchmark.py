@@ -253,28 +253,33 @@ def score_prints(prints: dict, designs, pixel_size_um: float) -> list[dict]:
     return rows
 
 
+FULL_GREY = 1.0  # the mask dose of the masks compared head to head: each method's, and the identical mask at 100 %
+
+
 def common_designs(rows: list[dict]) -> list[str]:
-    """The designs that every mask at full grey (each method's, and the identical mask at
-    100 %) printed: the set on which the masks are compared head to head."""
-    full = {}
+    """The designs that every mask at full grey (``FULL_GREY``) printed: the set on which
+    the masks are compared head to head (none where no row is at full grey)."""
+    printed: dict = {}
     for r in rows:
-        if r["mask_dose"] == 1.0:
-            full.setdefault(r["variant"], set()).update([r["design"]] if r["status"] == "ok" else [])
-    names = sorted({r["design"] for r in rows})
-    return [d for d in names if full and all(d in got for got in full.values())]
+        if r["mask_dose"] == FULL_GREY:
+            got = printed.setdefault(r["variant"], set())
+            if r["status"] == "ok":
+                got.add(r["design"])
+    return sorted(set.intersection(*printed.values())) if printed else []
 
 
 def summarise(rows: list[dict]) -> list[dict]:
-    """Mean metrics per method (and identical dose) over the designs with a print, and
-    (``common_*``) over the designs of ``common_designs`` that it printed.
+    """Mean metrics per method (and identical dose) over the designs with a print; the
+    count of ``common_designs`` (``common_designs``) and the means over them
+    (``common_*``, NaN for a mask without a print of every one of them); and the designs
+    a mask has no print of (``no_print``).
 
     A print that failed registration QC (or was never imaged) has no metrics, so each
     mask's mean over its own designs may be over other designs than the next mask's: in
-    a run of the default workflow the registration failed the star's prints of three
-    methods (it could not place them within 1.5 px, their true error 0.7 to 2.5 px), and
-    those methods' means left out a design that the others' held. The ``common_*``
-    columns compare every mask on the same designs; ``no_print`` names the designs a
-    mask has no print of."""
+    a run of the default workflow the registration failed the star's nominal prints of
+    three methods (it could not place them, their true error 0.67 to 2.25 px), and those
+    methods' means left out a design that the others' held. The ``common_*`` columns
+    compare the masks on the same designs."""
     groups: dict = {}
     for r in rows:
         groups.setdefault((r["method"], r["mask_dose"]), []).append(r)
@@ -288,19 +293,27 @@ def summarise(rows: list[dict]) -> list[dict]:
     for (method, dose), rs in sorted(groups.items(), key=lambda kv: (kv[0][0] == IDENTICAL, kv[0][0], -kv[0][1])):
         ok = [r for r in rs if r["status"] == "ok"]
         shared = [r for r in ok if r["design"] in common]
+        on_common = means(shared) if common and len(shared) == len(common) else dict.fromkeys(METRICS, math.nan)
         out.append(dict(method=method, mask_dose=dose, variant=label(method, dose), designs=len(ok), **means(ok),
                         no_print=",".join(sorted(r["design"] for r in rs if r["status"] != "ok")),
-                        common_designs=len(shared), **{f"common_{k}": v for k, v in means(shared).items()}))
+                        common_designs=len(common), **{f"common_{k}": v for k, v in on_common.items()}))
     return out
+
+
+def compared_on_common(summary: list[dict]) -> bool:
+    """Whether the masks of ``summary`` are to be compared on their common designs: there
+    are some, and a mask's own designs are not just those."""
+    return any(s["common_designs"] for s in summary) and any(s["designs"] != s["common_designs"] for s in summary)
 
 
 def summary_line(s: dict) -> str:
     """One summary row as the CLI and the workflow log print it."""
+    n = s["designs"]
     line = (f"{s['variant']:<16} IoU {s['iou']:.3f}  pixel error {s['pixel_error']:.3f}  EPE {s['epe_um']:.1f} um  "
-            f"PV band {s['pv_band_um']:.1f} um  ({s['designs']} designs)")
+            f"PV band {s['pv_band_um']:.1f} um  ({n} design{'' if n == 1 else 's'})")
     if s["no_print"]:
         line += f"; no print of {s['no_print']}"
-    if s["common_designs"] != s["designs"]:
+    if s["common_designs"] and s["common_designs"] != n and not np.isnan(s["common_iou"]):
         line += (f"; on the {s['common_designs']} designs that every full-grey mask printed: IoU {s['common_iou']:.3f}, "
                  f"EPE {s['common_epe_um']:.1f} um")
     return line
@@ -536,8 +549,9 @@ def fig_masks(path, designs: dict, masks: dict) -> None:
 
 def fig_bars(path, summary: list[dict]) -> None:
     """Mean IoU, pixel error, EPE and PV band per method and identical dose: over the
-    designs that every full-grey mask printed (``common_*``) where some mask has no print
-    of a design that another has, so that the bars compare the masks on the same designs."""
+    designs that every full-grey mask printed (``common_*``) where ``compared_on_common``,
+    so that the bars compare the masks on the same designs (n/a for a mask without a print
+    of one of them)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -545,7 +559,7 @@ def fig_bars(path, summary: list[dict]) -> None:
 
     labels = [s["variant"] for s in summary]
     colours = ["tab:blue" if s["method"] != IDENTICAL else "tab:gray" for s in summary]
-    common = any(s["common_designs"] != s["designs"] for s in summary) and any(s["common_designs"] for s in summary)
+    common = compared_on_common(summary)
     prefix = "common_" if common else ""
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.6))
     for ax, (key, name) in zip(axes, [("iou", "IoU (higher is better)"), ("pixel_error", "pixel error"),
@@ -559,9 +573,13 @@ def fig_bars(path, summary: list[dict]) -> None:
         if key == "iou":
             lo = min([v for v in vals if not np.isnan(v)] or [0])
             ax.set_ylim(max(0.0, lo - 0.05), 1.03)
-    lacking = [s["variant"] for s in summary if s["mask_dose"] == 1.0 and s["no_print"]]
-    over = (f"the {max(s['common_designs'] for s in summary)} designs that every full-grey mask printed "
-            f"(registration failed a print of {', '.join(lacking)}: summary.tsv's no_print)" if common else "the designs")
+            for i, v in enumerate(vals):  # a missing value's label sits at 0, below the axis here
+                if np.isnan(v):
+                    ax.text(i, max(0.0, lo - 0.05), "n/a", ha="center", va="bottom", fontsize=7)
+    lacking = [s["variant"] for s in summary if s["mask_dose"] == FULL_GREY and s["no_print"]]
+    over = (f"the {summary[0]['common_designs']} designs that every full-grey mask printed"
+            + (f" (no print of a design: {', '.join(lacking)}; summary.tsv's no_print)" if lacking else "")
+            if common else "the designs")
     fig.suptitle(f"Mean over {over}: compensated (blue) vs identical masks (grey)", fontsize=9)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)

@@ -33,7 +33,7 @@ def main(snakemake):
                                 bm.simulator_printer(params), doses=tuple(p.doses))
     for s in bm.summarise(rows):
         # a mask at full grey without a print of every design: its mean is not over the others' designs
-        (log.warning if s["no_print"] and s["mask_dose"] == 1.0 else log.info)("%s", bm.summary_line(s))
+        (log.warning if s["no_print"] and s["mask_dose"] == bm.FULL_GREY else log.info)("%s", bm.summary_line(s))
 
 
 if __name__ == "__main__":
