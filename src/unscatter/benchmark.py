@@ -56,9 +56,9 @@ PV_EXPOSURES = (0.9, 1.1)
 
 COLUMNS = ["design", "method", "mask_dose", "variant", "status", "iou", "pixel_error", "epe_um", "pv_band_um",
            "solid_fraction"]
-SUMMARY_COLUMNS = ["method", "mask_dose", "variant", "designs", "iou", "pixel_error", "epe_um", "pv_band_um",
-                   "no_print", "common_designs", "common_iou", "common_pixel_error", "common_epe_um", "common_pv_band_um"]
 METRICS = ("iou", "pixel_error", "epe_um", "pv_band_um")
+SUMMARY_COLUMNS = ["method", "mask_dose", "variant", "designs", *METRICS, "no_print", "common_designs",
+                   *(f"common_{k}" for k in METRICS)]
 
 Printer = Callable[[dict, dict], dict]  # (id -> uint8 mask, id -> exposure) -> id -> bool print (or None: no print)
 
