@@ -23,6 +23,7 @@ from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidate
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, contradicted, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
+from .parallel import forked_map
 from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc, well_fitted
 
 log = logging.getLogger(__name__)
@@ -1010,12 +1011,20 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     pool = ThreadPoolExecutor(s.threads)
     bar = tqdm(total=5 * len(ids), desc=f"registering {batch_dir.name}", unit="step", disable=not progress)
 
-    def pmap(fn, items):
+    def pmap(fn, items, fork: bool = False):
+        """``fn`` over ``items`` on the batch's threads, or (``fork``) in as many forked
+        processes (``parallel``: for the pose searches, whose small NumPy calls keep
+        threads waiting on Python's lock; ``fn`` then must change nothing here)."""
+        if fork:
+            return forked_map(fn, items, s.threads, pool.map, bar.update)
         out = []
         for r in pool.map(fn, items):
             out.append(r)
             bar.update(1)
         return out
+
+    def fmap(fn, items):  # ``pmap(fn, items, fork=True)`` off the progress bar's count
+        return forked_map(fn, items, s.threads, pool.map)
 
     # 1. flat field: one mode for the whole batch, so units agree between prints
     corr = pmap(lambda mid: correct_image(mid, batch.images[mid], offset, s, "divide"), ids)
@@ -1047,7 +1056,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     bar.refresh()
 
     # 3. distinct first poses against the blurred mask
-    starts = dict(zip(todo, pmap(lambda mid: first_pose(masks[mid], smooth[mid], s, scales[mid][0]), todo)))
+    starts = dict(zip(todo, pmap(lambda mid: first_pose(masks[mid], smooth[mid], s, scales[mid][0]), todo, fork=True)))
 
     # 4. the batch's print template, fitted over a spread of prints at their first poses
     quarter = PrintTemplate(design_px, MARGIN, factor=4)
@@ -1072,7 +1081,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         used = dict(fitted=[m for m, p in zip(ids_, pairs) if any(p is k for k in kept)],
                     left_out=[m for m, p in zip(ids_, pairs) if not any(p is k for k in kept)])
         if hot_spot:
-            x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals)  # a lamp hot
+            x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals, search_map=fmap)  # a lamp hot
             # spot, where the prints show one
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
         return x, fit, pairs, used
@@ -1093,7 +1102,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def chosen(ids_, x, start=None):  # ``start``: id -> the poses to start from (default: the first poses)
         start = start or {}
         return dict(zip(ids_, pmap(lambda mid: choose_pose(masks[mid], smooth[mid], start.get(mid, starts[mid][0]), x, s,
-                                                           design_px, counted(mid)), ids_)))
+                                                           design_px, counted(mid)), ids_, fork=True)))
 
     # 5a. the template again. A first pose against the blurred mask is off by the print's
     # difference from its mask (features that shrank, or grew more along one direction; a
@@ -1185,12 +1194,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 return replace(choices[mid], fit=refine(smooth[mid], choices[mid].fit.M, full, B, x, s.mode, iters=12, tol=0.01))
 
             bar.total += len(choices)
-            x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300)
+            x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300, search_map=fmap)
             log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit2)
             template_prints = dict(used2, first=template_prints)
             settled = [mid for mid in todo if placed(choices[mid])]  # no rival close: refined, not chosen again
             again = [mid for mid in choices if mid not in settled]
-            choices.update(zip(settled, pmap(lambda mid: refined(mid, x), settled)))
+            choices.update(zip(settled, pmap(lambda mid: refined(mid, x), settled, fork=True)))
             choices.update(chosen(again, x, {mid: ch.poses for mid, ch in choices.items() if mid in again}))
             rechosen = True
     if stains and not rechosen:  # the prints whose images the stain changed, chosen again from their pose and rival
@@ -1242,7 +1251,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                     return ch
             return new
 
-        for mid, ch in zip(redo, pool.map(again, redo)):
+        for mid, ch in zip(redo, fmap(again, redo)):  # ``again`` changes nothing here (the
+            # exposures it makes in a child are made again where needed)
             log.info("%s: chosen again within the batch's poses (rotation %.1f..%.1f deg, scale %.3f..%.3f): evidence %.1f -> %.1f",
                      mid, rlo, rhi, slo, shi, choices[mid].evidence, ch.evidence)
             choices[mid] = ch

@@ -635,7 +635,7 @@ HOT_FOLD_STARTS = 3  # whose bump fitted best on all prints)
 
 
 def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None,
-                 max_evals: int = 600, folds: int = HOT_FOLDS) -> tuple[np.ndarray, float]:
+                 max_evals: int = 600, folds: int = HOT_FOLDS, search_map=None) -> tuple[np.ndarray, float]:
     """A lamp hot spot in the batch's field, where its prints show one.
 
     The bump's centre cannot be searched at fixed template numbers: the quadratic field
@@ -657,10 +657,12 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     halves, +0.0010 by folds); the lab's cut-off gratings and a partial print were then
     used 1.5 to 2.0 px off. A bump taken is fitted on all prints and the other template
     numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held); it
-    is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``pool``: a map over the
-    centres of the search on all prints, then over the folds (each fold's centres in
-    turn; every fit depends on its own prints and start only, so the numbers are those
-    of one thread). Returns the numbers (always with the hot spot's four; ``hot`` zero where
+    is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``search_map`` (default
+    ``pool``): a map over the centres of the search on all prints, then over the folds
+    (each fold's centres in turn; every fit depends on its own prints and start only, so
+    the numbers are those of one thread; registration's forks processes for it,
+    ``parallel.forked_map``); ``pool``: the map ``fit_template`` runs its halves of the
+    prints on. Returns the numbers (always with the hot spot's four; ``hot`` zero where
     there is none) and their fit.
     """
     x = np.asarray(x, float)
@@ -676,7 +678,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
         order = np.argsort([v[2] for v in found], kind="stable")
         return base, doses, found[order[0]][0], found[order[0]][1], [centres[i] for i in order]
 
-    spread = pool or map  # the centres of the search on all prints, then the folds (docstring)
+    spread = search_map or pool or map  # the centres of the search on all prints, then the folds (docstring)
     base, doses, theta, d_hot, ranked = search(every, HOT_CENTRES, spread)
     gain = every.mean_ncc(theta, d_hot) - every.mean_ncc(base, doses)
     held = np.nan

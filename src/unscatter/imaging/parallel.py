@@ -1,0 +1,94 @@
+"""Registration's heavy per-print steps in forked worker processes.
+
+Registration's threads share one interpreter: the pose search of a print is mostly small
+NumPy and OpenCV calls, and between them the threads wait on each other for Python's
+lock. Measured on a batch of 32 prints of 829 x 993 (seed 778377244's lab 3 of
+``benchmarks/bench_registration.py``): one thread 80 s; two threads 57 s (161 % CPU);
+the pose searches and the hot-spot search in two forked processes, 48 s (180 % CPU),
+with qc.tsv and registration.yaml byte for byte the same.
+
+A forked child inherits the parent's memory, so the work may be any callable (a closure
+over the batch's images, its template, its settings): only each item's index goes to a
+child and only its result comes back, pickled. Fork, not spawn: spawn would import the
+caller's main module again in every child and pickle every image. ``concurrent.futures``'
+``ProcessPoolExecutor``, not ``multiprocessing.Pool``: a child that dies (out of memory)
+breaks the pool with an error instead of leaving its item waiting forever.
+
+What a callable may do in a child: compute and log. What it must not: change state of
+this process that the caller reads afterwards (a set it adds to, an object it alters in
+place: the change stays in the child; a cache it fills is only refilled here later), or
+hand work to this process's thread pool (its threads do not exist in the child). A
+child computes each item alone, on one thread, as one registration thread would: the
+results are those of one thread, whatever the number of processes.
+
+The children run no PyTorch: a forked child that uses OpenMP after its parent's OpenMP
+threads have run can hang (``fitting.Refits`` spawns for that reason), but registration's
+libraries are OpenCV (pthreads), OpenBLAS (which forks safely) and pocketfft. Where
+fork is not the platform's safe default (macOS, Windows) the threads do the work.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import sys
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+
+log = logging.getLogger(__name__)
+
+_work = None  # in a child: (the callable, the items), inherited from the parent at the fork
+
+
+def _set_work(fn, items) -> None:
+    global _work
+    _work = (fn, items)
+
+
+def _one(i: int):
+    fn, items = _work
+    return fn(items[i])
+
+
+def can_fork() -> bool:
+    """Fork is available and safe for registration's libraries (Linux)."""
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
+
+
+def forked_map(fn, items, processes: int, fallback=map, done=None) -> list:
+    """``[fn(item) for item in items]``, computed in up to ``processes`` forked processes
+    (the module's doc says what ``fn`` may do there). ``fallback``: the map that does the
+    work where processes do not (one process or item, no fork, a pool that broke); for
+    instance a thread pool's. ``done(1)`` is called as each item is done (a progress
+    bar), in this process."""
+    items = list(items)
+    processes = min(int(processes), len(items))
+    counted = [0]  # items reported done
+
+    def tick():
+        counted[0] += 1
+        if done is not None:
+            done(1)
+
+    if processes > 1 and can_fork():
+        out = [None] * len(items)
+        # the work is handed to the children at the fork (initializer arguments are
+        # inherited, not pickled, under fork): only indices and results travel
+        ex = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork"), initializer=_set_work,
+                                 initargs=(fn, items))
+        try:
+            futures = {ex.submit(_one, i): i for i in range(len(items))}
+            for f in as_completed(futures):
+                out[futures[f]] = f.result()
+                tick()
+            return out
+        except BrokenProcessPool as exc:
+            log.warning("registration's worker processes stopped (%s); the work goes on in threads", exc)
+        finally:
+            ex.shutdown(wait=True, cancel_futures=True)  # on an error, the items not yet started are dropped
+    out, reported = [], counted[0]
+    for i, r in enumerate(fallback(fn, items)):
+        out.append(r)
+        if i >= reported:
+            tick()
+    return out

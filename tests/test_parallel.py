@@ -1,0 +1,55 @@
+"""Registration's forked worker processes (``unscatter.imaging.parallel``)."""
+
+import logging
+import os
+
+import numpy as np
+import pytest
+
+from unscatter.imaging.parallel import can_fork, forked_map
+
+needs_fork = pytest.mark.skipif(not can_fork(), reason="fork is registration's only on Linux")
+
+
+@needs_fork
+def test_a_closure_runs_in_child_processes_and_its_results_come_back_in_order():
+    image = np.arange(12.0).reshape(3, 4)  # closed over, inherited at the fork, never pickled
+    parent = os.getpid()
+    ticks = []
+    out = forked_map(lambda i: (i, float(image[i].sum()), os.getpid()), [2, 0, 1, 2], 2, done=ticks.append)
+    assert [(i, s) for i, s, _ in out] == [(2, 38.0), (0, 6.0), (1, 22.0), (2, 38.0)]
+    assert all(pid != parent for _, _, pid in out)
+    assert ticks == [1] * 4
+
+
+@needs_fork
+def test_an_error_in_a_child_reaches_the_caller():
+    def fn(i):
+        if i == 3:
+            raise ValueError(f"print {i} is odd")
+        return i
+
+    with pytest.raises(ValueError, match="print 3 is odd"):
+        forked_map(fn, range(6), 2)
+
+
+@needs_fork
+def test_a_child_that_dies_leaves_the_work_to_the_fallback(caplog):
+    parent = os.getpid()
+
+    def fn(i):
+        if os.getpid() != parent:
+            os._exit(1)  # as a child killed for memory
+        return 10 * i
+
+    ticks = []
+    with caplog.at_level(logging.WARNING, logger="unscatter.imaging.parallel"):
+        out = forked_map(fn, range(5), 2, fallback=map, done=ticks.append)
+    assert out == [0, 10, 20, 30, 40]
+    assert len(ticks) == 5  # each item counted once
+    assert "worker processes stopped" in caplog.text
+
+
+def test_one_process_works_here():
+    parent = os.getpid()
+    assert forked_map(lambda i: (i * i, os.getpid()), range(4), 1) == [(i * i, parent) for i in range(4)]
