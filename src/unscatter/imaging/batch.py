@@ -119,7 +119,8 @@ class Settings:
     hot_spot_gain: float = 2e-4  # mean NCC a lamp hot spot in the print template must gain on prints it was not
     # fitted to (fit_hot_spot; inf: no search)
     skip_failed: bool = REGISTRATION.default.skip_failed
-    threads: int = 2
+    threads: int = 2  # registration's workers: threads, and for the pose searches as many forked processes (Linux;
+    # ``parallel``); a batch registers alike at any number
     extra: dict = field(default_factory=dict)
 
 
