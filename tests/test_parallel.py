@@ -53,3 +53,15 @@ def test_a_child_that_dies_leaves_the_work_to_the_fallback(caplog):
 def test_one_process_works_here():
     parent = os.getpid()
     assert forked_map(lambda i: (i * i, os.getpid()), range(4), 1) == [(i * i, parent) for i in range(4)]
+
+
+def test_without_fork_the_fallback_does_the_work(monkeypatch):
+    import unscatter.imaging.parallel as parallel
+    from concurrent.futures import ThreadPoolExecutor
+
+    monkeypatch.setattr(parallel, "can_fork", lambda: False)
+    parent, ticks = os.getpid(), []
+    with ThreadPoolExecutor(2) as ex:
+        out = parallel.forked_map(lambda i: (i + 1, os.getpid()), range(5), 2, fallback=ex.map, done=ticks.append)
+    assert out == [(i + 1, parent) for i in range(5)]
+    assert ticks == [1] * 5
