@@ -65,3 +65,16 @@ def test_without_fork_the_fallback_does_the_work(monkeypatch):
         out = parallel.forked_map(lambda i: (i + 1, os.getpid()), range(5), 2, fallback=ex.map, done=ticks.append)
     assert out == [(i + 1, parent) for i in range(5)]
     assert ticks == [1] * 5
+
+
+@needs_fork
+def test_processes_that_cannot_start_leave_the_work_to_the_fallback(monkeypatch, caplog):
+    import unscatter.imaging.parallel as parallel
+
+    def no_processes(*args, **kw):
+        raise OSError(12, "Cannot allocate memory")
+
+    monkeypatch.setattr(parallel, "ProcessPoolExecutor", no_processes)
+    with caplog.at_level(logging.WARNING, logger="unscatter.imaging.parallel"):
+        assert parallel.forked_map(lambda i: 2 * i, range(4), 2) == [0, 2, 4, 6]
+    assert "could not start" in caplog.text

@@ -17,14 +17,19 @@ breaks the pool with an error instead of leaving its item waiting forever.
 What a callable may do in a child: compute and log. What it must not: change state of
 this process that the caller reads afterwards (a set it adds to, an object it alters in
 place: the change stays in the child; a cache it fills is only refilled here later), or
-hand work to this process's thread pool (its threads do not exist in the child). A
-child computes each item alone, on one thread, as one registration thread would: the
-results are those of one thread, whatever the number of processes.
+hand work to this process's thread pool (its threads do not exist in the child). The
+caller's other threads must be idle when it calls (a lock one of them held at the fork
+would stay held in the child). A child runs OpenBLAS and OpenCV on one thread each and
+computes each item alone, as one registration thread does under
+``batch.one_library_thread``: the results are those of one thread, whatever the number
+of processes.
 
 The children run no PyTorch: a forked child that uses OpenMP after its parent's OpenMP
 threads have run can hang (``fitting.Refits`` spawns for that reason), but registration's
-libraries are OpenCV (pthreads), OpenBLAS (which forks safely) and pocketfft. Where
-fork is not the platform's safe default (macOS, Windows) the threads do the work.
+libraries are OpenCV (pthreads), OpenBLAS (which forks safely) and pocketfft. Fork is
+used on Linux only, and named (it is not every platform's safe default: macOS, Windows,
+and Python 3.14's default start method on Linux is forkserver); elsewhere, where
+processes cannot be started and where a child dies, the fallback map does the work.
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import sys
+import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 
@@ -43,6 +49,11 @@ _work = None  # in a child: (the callable, the items), inherited from the parent
 def _set_work(fn, items) -> None:
     global _work
     _work = (fn, items)
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    cv2.setNumThreads(1)  # for the rest of the child's life
+    threadpool_limits(limits=1, user_api="blas")
 
 
 def _one(i: int):
@@ -71,21 +82,29 @@ def forked_map(fn, items, processes: int, fallback=map, done=None) -> list:
             done(1)
 
     if processes > 1 and can_fork():
-        out = [None] * len(items)
-        # the work is handed to the children at the fork (initializer arguments are
-        # inherited, not pickled, under fork): only indices and results travel
-        ex = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork"), initializer=_set_work,
-                                 initargs=(fn, items))
+        out, ex, futures = [None] * len(items), None, None
         try:
-            futures = {ex.submit(_one, i): i for i in range(len(items))}
-            for f in as_completed(futures):
-                out[futures[f]] = f.result()
-                tick()
-            return out
-        except BrokenProcessPool as exc:
-            log.warning("registration's worker processes stopped (%s); the work goes on in threads", exc)
-        finally:
-            ex.shutdown(wait=True, cancel_futures=True)  # on an error, the items not yet started are dropped
+            with warnings.catch_warnings():  # Python 3.12+ warns of a fork with threads; the module's doc says why it is safe
+                warnings.filterwarnings("ignore", message=r".*use of fork\(\) may lead to deadlocks", category=DeprecationWarning)
+                # the work is handed to the children at the fork (initializer arguments are
+                # inherited, not pickled, under fork): only indices and results travel
+                ex = ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("fork"), initializer=_set_work,
+                                         initargs=(fn, items))
+                futures = {ex.submit(_one, i): i for i in range(len(items))}
+        except (OSError, NotImplementedError, BrokenProcessPool) as exc:  # no processes to be had (memory, a limit)
+            log.warning("registration's worker processes could not start (%s); the work goes on here", exc)
+            if ex is not None:
+                ex.shutdown(wait=True, cancel_futures=True)
+        if futures is not None:
+            try:
+                for f in as_completed(futures):
+                    out[futures[f]] = f.result()  # an error of ``fn`` is raised here, as it would be without processes
+                    tick()
+                return out
+            except BrokenProcessPool as exc:
+                log.warning("registration's worker processes stopped (%s); the work goes on here", exc)
+            finally:
+                ex.shutdown(wait=True, cancel_futures=True)  # on an error, the items not yet started are dropped
     out, reported = [], counted[0]
     for i, r in enumerate(fallback(fn, items)):
         out.append(r)

@@ -660,7 +660,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``search_map`` (default
     ``pool``): a map over the centres of the search on all prints, then over the folds
     (each fold's centres in turn; every fit depends on its own prints and start only, so
-    the numbers are those of one thread; registration's forks processes for it,
+    the numbers are those of one thread; registration forks processes for it,
     ``parallel.forked_map``); ``pool``: the map ``fit_template`` runs its halves of the
     prints on. Returns the numbers (always with the hot spot's four; ``hot`` zero where
     there is none) and their fit.
