@@ -78,3 +78,31 @@ def test_processes_that_cannot_start_leave_the_work_to_the_fallback(monkeypatch,
     with caplog.at_level(logging.WARNING, logger="unscatter.imaging.parallel"):
         assert parallel.forked_map(lambda i: 2 * i, range(4), 2) == [0, 2, 4, 6]
     assert "could not start" in caplog.text
+
+
+
+@needs_fork
+def test_children_use_opencv_after_the_parents_opencv_threads_ran():
+    """OpenCV has blurred on two threads in this process (its worker threads exist), and
+    the children blur too, with the same sums. A child that set OpenCV's threads itself
+    waited forever on the parent's workers. Run in a fresh interpreter with a time
+    limit, so that a child that waits fails the test instead of stalling the suite."""
+    import subprocess
+    import sys
+
+    code = (
+        "import cv2, numpy as np\n"
+        "from unscatter.imaging.parallel import forked_map\n"
+        "cv2.setNumThreads(2)\n"
+        "a = np.random.default_rng(0).random((1024, 1024)).astype(np.float32)\n"
+        "ref = [float(cv2.GaussianBlur(a, (0, 0), s).sum()) for s in (1, 2, 3, 4)]\n"
+        "out = forked_map(lambda s: float(cv2.GaussianBlur(a, (0, 0), s).sum()), [1, 2, 3, 4], 2)\n"
+        "assert out == ref, (out, ref)\n"
+        "assert cv2.getNumThreads() == 2\n"
+        "print('ok')\n"
+    )
+    try:
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    except subprocess.TimeoutExpired:
+        pytest.fail("a forked child that runs OpenCV waited on its parent's OpenCV threads")
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr

@@ -19,10 +19,13 @@ this process that the caller reads afterwards (a set it adds to, an object it al
 place: the change stays in the child; a cache it fills is only refilled here later), or
 hand work to this process's thread pool (its threads do not exist in the child). The
 caller's other threads must be idle when it calls (a lock one of them held at the fork
-would stay held in the child). A child runs OpenBLAS and OpenCV on one thread each and
-computes each item alone, as one registration thread does under
-``batch.one_library_thread``: the results are those of one thread, whatever the number
-of processes.
+would stay held in the child). Registration runs OpenBLAS and OpenCV on one thread
+each while it forks (``batch.one_library_thread``): a child computes each item alone,
+as one registration thread does, and the results are those of one thread, whatever the
+number of processes. A child must not change the libraries' threads itself: in a child
+of a process whose OpenCV had run on two threads, ``cv2.setNumThreads(1)`` waited
+forever on the parent's OpenCV workers, which the child does not have (seen in the test
+suite; ``tests/test_parallel.py`` runs OpenCV in children of such a process).
 
 The children run no PyTorch: a forked child that uses OpenMP after its parent's OpenMP
 threads have run can hang (``fitting.Refits`` spawns for that reason), but registration's
@@ -49,11 +52,6 @@ _work = None  # in a child: (the callable, the items), inherited from the parent
 def _set_work(fn, items) -> None:
     global _work
     _work = (fn, items)
-    import cv2
-    from threadpoolctl import threadpool_limits
-
-    cv2.setNumThreads(1)  # for the rest of the child's life
-    threadpool_limits(limits=1, user_api="blas")
 
 
 def _one(i: int):
