@@ -1016,13 +1016,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         """``fn`` over ``items`` on the batch's threads, or (``fork``) in as many forked
         processes (``parallel``: for the pose searches, whose small NumPy calls keep
         threads waiting on Python's lock; ``fn`` then must change nothing here)."""
-        if fork:
-            return forked_map(fn, items, s.threads, pool.map, bar.update)
-        out = []
-        for r in pool.map(fn, items):
-            out.append(r)
-            bar.update(1)
-        return out
+        return forked_map(fn, items, s.threads if fork else 1, pool.map, bar.update)  # one process: the threads
 
     def fmap(fn, items):  # ``pmap(fn, items, fork=True)`` off the progress bar's count
         return forked_map(fn, items, s.threads, pool.map)
