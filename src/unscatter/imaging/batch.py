@@ -1377,11 +1377,17 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         from their sizes alone, ``Fit.sizes_sd``, without their own places, over
         ``hold_size_sd``, and where it is below the limit, its own scale
         within ``scale_sigmas`` spreads of the stated one) while its data nearly fix the
-        rest of its pose (its pose spread within 1.5 times the limit, which the scale's
-        trade inflates for one block; a grating loose along its lines stays failed), and
-        only where it is known more closely than the batch's one magnification, and only
-        where the held fit's spreads are the smaller. It counts in the pose's spread, so it
-        lets a print pass only when it is tight enough (about 0.15 % for a print of 512 px)."""
+        rest of its pose (its pose spread, which the free scale's trade against the
+        features' size inflates, within the size spread's limit ``max_size_sd``; a pose
+        looser than that, a grating loose along its lines or a pose far off, stays
+        failed), and only where it is known more closely than the batch's one
+        magnification, and only where the held fit's spreads are the smaller. The limit
+        was 1.5 times ``max_pose_sd`` (0.75 px): paper trial prints of checkerboards and
+        rectangles whose free scale had slid 1 to 3 % along their blocks' size (pose
+        spreads 0.83 to 1.35 px, 2.0 to 7.4 px off) stayed failed; held, they are 0.6 to
+        0.9 px off (README, "Held to a stated size though their free pose is loose"). It
+        counts in the pose's spread, so it lets a print pass only when it is tight enough
+        (about 0.15 % for a print of 512 px)."""
         ch, T = choices[mid], spreads[mid][0]
         padded = full.padded(masks[mid])
         merged = merged_features(T, padded)
@@ -1456,7 +1462,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         # only where it agrees with the stated one (a print whose scale is off it is
         # evidence of a wrong pose, which holding would hide: a grey ramp of seed
         # 1767693049 passed 2.6 px off, its free scale 0.4 % off, 4.1 times the spread)
-        if (p is not None and (held_scale is None or p[1] < held_scale[1]) and f.pose_sd <= 1.5 * s.max_pose_sd
+        if (p is not None and (held_scale is None or p[1] < held_scale[1]) and f.pose_sd <= s.max_size_sd
                 and (f.sizes_sd > s.max_size_sd
                      or (f.sizes_sd > s.hold_size_sd and abs(log_scale(f.M) - p[0]) <= s.scale_sigmas * p[1]))):
             g = fit(p)
