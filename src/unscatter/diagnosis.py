@@ -931,8 +931,8 @@ def structure_significant(t: dict, s: dict) -> bool:
     the prints it is measured on, over every bin of the diagnostic, and structure in a few
     bins is diluted by the others. A lamp hot spot in a few of the position's 8 x 8 cells
     had an excess of 0.12 with a sign-flip p of 0.002 to 0.004 and removed 2.2 to 6.4 % of
-    the held-out error (fitted on other prints); a residual by signed distance, 0.115 with
-    p 0.002 and 3.8 %. The held-out gain measures the same size where it counts, on prints
+    the held-out error (fitted on other prints); a residual by signed distance, 0.12 with
+    p 0.002 and 3.7 %. The held-out gain measures the same size where it counts, on prints
     the correction did not see. On ``bench_diagnosis``'s random labs without an outside
     effect (43 labs of six seeds; README, "The excess gate dropped"), no diagnostic
     with p below 0.01 gained more than 0.41 %, and none that gained 1.5 % had p below
