@@ -399,6 +399,24 @@ def _hot_spot_prints(width: float) -> SimpleNamespace:
     return SimpleNamespace(geo=geo, margins=margins, folds=folds, sims=margin >= 0, prints=prints, axis=c, rng=rng)
 
 
+def test_the_position_field_from_its_factors_is_the_basis_times_the_weights():
+    """field_gain builds the bumps' rows at the pixels it fits on, and the field, from the
+    two 1-D factors: the same numbers as the (H*W, n*n) basis (not built there)."""
+    from unscatter.diagnosis import _field_rows, field_basis, field_factors
+
+    rng = np.random.default_rng(2)
+    shape, n = (37, 53), 7
+    Phi = field_basis(shape, n)
+    gy, gx = field_factors(shape, n)
+    idx = rng.integers(0, shape[0] * shape[1], 300)
+    np.testing.assert_array_equal(_field_rows(gy, gx, idx), Phi[idx])
+    c = rng.standard_normal(n * n).astype(np.float32)
+    np.testing.assert_allclose((gy @ c.reshape(n, n) @ gx.T).ravel(), Phi @ c, atol=1e-5)
+    # a bump's peak sits at its grid point: the middle bump peaks at the field's centre
+    mid = (Phi[:, (n // 2) * n + n // 2]).reshape(shape)
+    assert np.unravel_index(mid.argmax(), shape) == (shape[0] // 2, shape[1] // 2)
+
+
 def test_field_gain_finds_a_hot_spot_common_to_the_prints_but_not_one_of_their_own():
     """The position's predictive test (a smooth field of the margin fitted on training
     prints) gains where every print has the same hot spot and loses where each print has

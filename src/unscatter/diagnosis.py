@@ -817,15 +817,30 @@ def _field_axis(n: int) -> np.ndarray:
     return (np.arange(n) + 0.5) / n * 2 - 1
 
 
-def field_basis(shape: tuple, n: int) -> np.ndarray:
-    """(H*W, n*n) Gaussian bumps on an n x n grid over the field (-1..1 both ways), each as
-    wide as the grid's spacing: a smooth field of the position is a weighted sum of them."""
+def field_factors(shape: tuple, n: int) -> tuple:
+    """The bumps of ``field_basis`` as their two 1-D factors, (H, n) down the field and
+    (W, n) across: bump (a, b) at pixel (y, x) is gy[y, a] gx[x, b], so a field of weights
+    C (n, n) is gy C gx^T, and the basis's rows at some pixels are built from the factors
+    alone (``_field_rows``), never the (H*W, n*n) matrix (85 MB at 512 x 512, n = 9)."""
     H, W = shape
     c = np.linspace(-1, 1, n)
     h = c[1] - c[0]
-    gy = np.exp(-0.5 * ((_field_axis(H)[:, None] - c) / h) ** 2)
-    gx = np.exp(-0.5 * ((_field_axis(W)[:, None] - c) / h) ** 2)
-    return (gy[:, None, :, None] * gx[None, :, None, :]).reshape(H * W, n * n).astype(np.float32)
+    gy = np.exp(-0.5 * ((_field_axis(H)[:, None] - c) / h) ** 2).astype(np.float32)
+    gx = np.exp(-0.5 * ((_field_axis(W)[:, None] - c) / h) ** 2).astype(np.float32)
+    return gy, gx
+
+
+def field_basis(shape: tuple, n: int) -> np.ndarray:
+    """(H*W, n*n) Gaussian bumps on an n x n grid over the field (-1..1 both ways), each as
+    wide as the grid's spacing: a smooth field of the position is a weighted sum of them."""
+    gy, gx = field_factors(shape, n)
+    return (gy[:, None, :, None] * gx[None, :, None, :]).reshape(len(gy) * len(gx), n * n)
+
+
+def _field_rows(gy: np.ndarray, gx: np.ndarray, flat: np.ndarray) -> np.ndarray:
+    """``field_basis``'s rows at the flat pixel indices ``flat``."""
+    r, c = np.divmod(flat, len(gx))
+    return (gy[r][:, :, None] * gx[c][:, None, :]).reshape(len(flat), -1)
 
 
 def _logistic_fit(X: np.ndarray, y: np.ndarray, m: np.ndarray, w: np.ndarray, ridge: float, tau: float,
@@ -861,7 +876,8 @@ def _logistic_fit(X: np.ndarray, y: np.ndarray, m: np.ndarray, w: np.ndarray, ri
 
 
 def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
-               n: int = 9, ridge: float = 1e-2, tau: float = 0.03, max_pixels: int = 200_000, return_field: bool = False):
+               n: int | None = None, ridge: float | None = None, tau: float = 0.03, max_pixels: int = 200_000,
+               return_field: bool = False):
     """The share of the held-out error that a smooth field of the cure margin removes
     from prints it was not fitted on: ``predictive_gain`` for the position, with the
     per-cell offsets replaced by a smooth field (``field_basis``: n x n bumps) fitted per
@@ -883,16 +899,19 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     (with a kernel that widens) gained 6.4, 2.2 and 21.9 % and gain 7.6, 4.0 and 23.5 %;
     on 33 labs with no effect the gain's median is -1.4 % (was -1.0 %), its largest 2.7 %
     (2.6 %) at p 0.44, and the two over 1.5 % have p 0.078 and 0.44 (README, "A finer
-    field"). 2.3 s for 32 prints of 512 x 512 (0.7 s with 5 x 5).
+    field"). 2.3 s for 32 prints of 512 x 512 (0.7 s with 5 x 5). ``n`` and ``ridge`` default
+    to ``DEFAULTS``' ``field_basis`` and ``field_ridge``.
 
     ``return_field``: also the fitted field (relative dose added to the margin, (H, W)),
     the mean of the folds' fits, for the figure."""
     B, H, W = prints.shape
+    n = int(DEFAULTS["field_basis"] if n is None else n)
+    ridge = DEFAULTS["field_ridge"] if ridge is None else ridge
     w = np.ones(B) if weights is None else np.asarray(weights, float)
     total = _heldout_total(prints, sims, w)
     if total == 0:
         return (0.0, np.zeros((H, W), np.float32)) if return_field else 0.0
-    Phi = field_basis((H, W), n)
+    gy, gx = field_factors((H, W), n)
     fields = []
     near = [np.flatnonzero(g["position"].ravel() >= 0) for g in geo.bins]
     printed = [p.ravel()[k] > 0 for p, k in zip(prints, near)]
@@ -907,11 +926,11 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
         pick = [near[i][::step] for i in train]
         if not sum(len(k) for k in pick):
             continue
-        c = _logistic_fit(Phi[np.concatenate(pick)],
+        c = _logistic_fit(_field_rows(gy, gx, np.concatenate(pick)),
                           np.concatenate([np.where(printed[i][::step], 1.0, -1.0) for i in train]).astype(np.float32),
                           np.concatenate([margins[f, i].ravel()[k] for i, k in zip(train, pick)]).astype(np.float32),
                           np.concatenate([np.full(len(k), w[i], np.float32) for i, k in zip(train, pick)]), ridge, tau)
-        field = Phi @ c.astype(np.float32)
+        field = (gy @ c.reshape(n, n).astype(np.float32) @ gx.T).ravel()
         fields.append(field)
         for i in np.flatnonzero(test):
             m, p = margins[f, i].ravel()[near[i]], printed[i]
