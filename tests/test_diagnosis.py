@@ -402,12 +402,13 @@ def _hot_spot_prints(width: float) -> SimpleNamespace:
 def test_the_position_field_from_its_factors_is_the_basis_times_the_weights():
     """field_gain builds the bumps' rows at the pixels it fits on, and the field, from the
     two 1-D factors: the same numbers as the (H*W, n*n) basis (not built there)."""
-    from unscatter.diagnosis import _field_rows, field_basis, field_factors
+    from unscatter.diagnosis import _field_rows, field_factors
 
     rng = np.random.default_rng(2)
     shape, n = (37, 53), 7
-    Phi = field_basis(shape, n)
     gy, gx = field_factors(shape, n)
+    # the basis itself, bump (a, b) in column a*n + b, every pixel a row
+    Phi = (gy[:, None, :, None] * gx[None, :, None, :]).reshape(shape[0] * shape[1], n * n)
     idx = rng.integers(0, shape[0] * shape[1], 300)
     np.testing.assert_array_equal(_field_rows(gy, gx, idx), Phi[idx])
     c = rng.standard_normal(n * n).astype(np.float32)

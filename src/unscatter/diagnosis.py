@@ -818,10 +818,12 @@ def _field_axis(n: int) -> np.ndarray:
 
 
 def field_factors(shape: tuple, n: int) -> tuple:
-    """The bumps of ``field_basis`` as their two 1-D factors, (H, n) down the field and
-    (W, n) across: bump (a, b) at pixel (y, x) is gy[y, a] gx[x, b], so a field of weights
-    C (n, n) is gy C gx^T, and the basis's rows at some pixels are built from the factors
-    alone (``_field_rows``), never the (H*W, n*n) matrix (85 MB at 512 x 512, n = 9)."""
+    """The position's smooth field's basis: Gaussian bumps on an n x n grid over the field
+    (-1..1 both ways), each as wide as the grid's spacing, as their two 1-D factors, (H, n)
+    down the field and (W, n) across. Bump (a, b) at pixel (y, x) is gy[y, a] gx[x, b], so
+    a field of weights C (n, n) is gy C gx^T, and the basis's rows at some pixels are built
+    from the factors alone (``_field_rows``), never the (H*W, n*n) matrix (85 MB at
+    512 x 512, n = 9)."""
     H, W = shape
     c = np.linspace(-1, 1, n)
     h = c[1] - c[0]
@@ -830,15 +832,9 @@ def field_factors(shape: tuple, n: int) -> tuple:
     return gy, gx
 
 
-def field_basis(shape: tuple, n: int) -> np.ndarray:
-    """(H*W, n*n) Gaussian bumps on an n x n grid over the field (-1..1 both ways), each as
-    wide as the grid's spacing: a smooth field of the position is a weighted sum of them."""
-    gy, gx = field_factors(shape, n)
-    return (gy[:, None, :, None] * gx[None, :, None, :]).reshape(len(gy) * len(gx), n * n)
-
-
 def _field_rows(gy: np.ndarray, gx: np.ndarray, flat: np.ndarray) -> np.ndarray:
-    """``field_basis``'s rows at the flat pixel indices ``flat``."""
+    """The (len(flat), n*n) rows of the basis (``field_factors``) at the flat pixel indices
+    ``flat`` of the field, column a*n + b for bump (a, b)."""
     r, c = np.divmod(flat, len(gx))
     return (gy[r][:, :, None] * gx[c][:, None, :]).reshape(len(flat), -1)
 
@@ -880,7 +876,7 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
                return_field: bool = False):
     """The share of the held-out error that a smooth field of the cure margin removes
     from prints it was not fitted on: ``predictive_gain`` for the position, with the
-    per-cell offsets replaced by a smooth field (``field_basis``: n x n bumps) fitted per
+    per-cell offsets replaced by a smooth field (``field_factors``: n x n bumps) fitted per
     fold on its training prints' pixels near an edge (those of the position diagnostic),
     by a logistic loss on the corrected margin (softness ``tau`` of relative dose) with a
     small ridge, on at most about ``max_pixels`` of them (every k-th).
@@ -899,7 +895,7 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     (with a kernel that widens) gained 6.4, 2.2 and 21.9 % and gain 7.6, 4.0 and 23.5 %;
     on 33 labs with no effect the gain's median is -1.4 % (was -1.0 %), its largest 2.7 %
     (2.6 %) at p 0.44, and the two over 1.5 % have p 0.078 and 0.44 (README, "A finer
-    field"). 2.3 s for 32 prints of 512 x 512 (0.7 s with 5 x 5). ``n`` and ``ridge`` default
+    field"). 2.1 s for 32 prints of 512 x 512 (0.7 s with 5 x 5). ``n`` and ``ridge`` default
     to ``DEFAULTS``' ``field_basis`` and ``field_ridge``.
 
     ``return_field``: also the fitted field (relative dose added to the margin, (H, W)),
