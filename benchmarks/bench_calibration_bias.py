@@ -14,10 +14,12 @@ dose nonlinearity or edge offset: paper physics, so the lab's sigma and T are Eq
    on the lab's true prints of the same masks in mask coordinates ("truth": no
    microscope, no registration);
 3. held-out masks (test patterns and paper masks) are printed by the lab (mask
-   coordinates, one noisy print each); each calibrated model, the lab's own Eq. 1
-   parameters ("lab eq1") and the floor (the per-pixel majority of 7 other noisy prints
-   of the lab: the best its own printer predicts one print) are scored by IoU against
-   them.
+   coordinates, ``bench_diagnosis.TRUTH_DRAWS`` noisy prints each); each calibrated
+   model, the lab's own Eq. 1 parameters ("lab eq1") and the floor (the per-pixel
+   majority of ``bench_diagnosis.FLOOR_VOTES`` other noisy prints of the lab: the best its
+   own printer predicts one print) are scored by IoU against them, the mean over the
+   prints of each mask (``bench_diagnosis.held_out_truth``; before 2026-12-06 one print a
+   mask and a floor of 7 votes).
 
 Gauge: the lab's dose is 1 at full grey at the field centre over a large area, its
 field's centre value is 1 and its print is where the density reaches half of saturation,
@@ -87,7 +89,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
     from unscatter.lab.random import describe_lab
     from unscatter.lab.run import psf_sigma_um
     from unscatter.masks import test_pattern_masks, trial_masks
-    from unscatter.metrics import area_bias_px, iou
+    from unscatter.metrics import area_bias_px
     from unscatter.model import default_params, simulate
 
     d = root / f"lab{i:02d}"
@@ -135,25 +137,20 @@ def run_lab(i: int, seed: int, a, root: Path) -> dict:
         n, miss = thin_lost(t, reg)
         thin_n += n
         thin_miss += miss
-    from bench_diagnosis import _write_batch  # a registration-like folder of prints in mask coordinates
+    from bench_diagnosis import _write_batch, held_out_truth, scored  # prints in mask coordinates, held-out scores
 
     _write_batch(d / "truth_prints", trial, truth, px)
 
-    # held-out masks, printed by the lab in mask coordinates; the floor from 7 other prints
+    # held-out masks, printed by the lab in mask coordinates (several prints each), and the floor
     held = {f"pat_{k}": m for k, m in test_pattern_masks(a.heldout, seed=_substream(seed, i, 3), size=a.size).items()}
     held |= {f"paper_{k}": m for k, m in trial_masks(a.heldout // 2, seed=_substream(seed, i, 4), size=a.size).items()}
     printer = Printer(cfg["printer"], a.size, px)
-    hs = _substream(seed, i, 6)
-    ho_true, ho_floor = {}, {}
-    for j, (mid, m) in enumerate(held.items()):
-        ho_true[mid] = printer.crop(printer.density(m, np.random.default_rng([hs, j]))) >= level
-        votes = sum((printer.crop(printer.density(m, np.random.default_rng([hs, j, 1 + v]))) >= level).astype(int) for v in range(7))
-        ho_floor[mid] = votes > 3
+    ho_true, ho_floor = held_out_truth(printer, level, held, _substream(seed, i, 6))
     H = np.stack(list(held.values()))
     ids = list(held)
 
     def score(sim):
-        v = [iou(s, ho_true[mid]) for s, mid in zip(sim, ids)]
+        v = [m["sim"] for m in scored({"sim": sim}, ho_true, ids)[0].values()]
         pat = [x for x, mid in zip(v, ids) if mid.startswith("pat_")]
         return float(np.nanmean(v)), float(np.nanmean(pat))
 

@@ -18,8 +18,9 @@ its effects over wide ranges; a new seed each run, printed, ``--seed`` repeats i
 2. for each kind and each n of ``--counts``, Eq. 1 is calibrated on the prints of the
    first n masks (``--full``: the workflow's GA 48 x 30; default: GA 24 x 10, no CV);
 3. the calibrated model prints the held-out masks; its IoU against the lab's true
-   prints (mask coordinates, from the lab's truth) is the score, with the fitted sigma
-   against the lab's own.
+   prints (mask coordinates: the batch's truth and ``bench_diagnosis.TRUTH_DRAWS`` - 1
+   more prints of each mask by the lab's printer, the mean over them; one print before
+   2026-12-06) is the score, with the fitted sigma against the lab's own.
 
 With ``--effects`` (for instance ``none,heavy_tail,anisotropy,dose_nonlinearity,
 illumination_field,edge_offset,outside``) each lab has one effect beyond Eq. 1 (or none,
@@ -102,7 +103,7 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     from unscatter.design import design_masks
     from unscatter.imaging import register_batch
     from unscatter.io import read_print, write_png
-    from unscatter.lab import load_config, print_batch, random_lab
+    from unscatter.lab import Printer, load_config, print_batch, random_lab
     from unscatter.lab.random import describe_lab
     from unscatter.masks import test_pattern_masks, trial_masks, with_fiducials
 
@@ -136,9 +137,13 @@ def run_lab(i: int, seed: int, a, root: Path) -> tuple[dict, list[dict]]:
     t_reg = time.perf_counter() - t1
     failed = {r["id"] for r in qc if r["status"] == "failed"}
     silent, close = registration_truth(d / "reg", d / "batch.truth")
-    truth = [read_print(d / "batch.truth" / "prints" / f"{mid}.png") for mid in ids["held"]]
     held_masks = np.stack(held)
     cfg = load_config(overrides=over)
+    # the batch's print of each held-out mask and more prints of it (``held_out_iou``)
+    more, _ = bench_diagnosis.held_out_truth(Printer(cfg["printer"], held_masks.shape[-1], float(cfg["batch"]["pixel_size_um"])),
+                                             float(cfg["microscope"]["level"]), dict(zip(ids["held"], held)),
+                                             _substream(seed, i, 8), votes=0)
+    truth = [[read_print(d / "batch.truth" / "prints" / f"{mid}.png"), *more[mid][1:]] for mid in ids["held"]]
     lab_sigma_px = cfg["printer"]["kernel"]["sigma_um"] / float(cfg["batch"]["pixel_size_um"])
     lab = dict(lab=i, describe=describe_lab(over), effect=effect, magnitude=magnitude, overrides=over, failed=sorted(failed),
                design_s=round(t_design, 1), register_s=round(t_reg, 1), lab_sigma_px=lab_sigma_px,
@@ -259,11 +264,14 @@ def registration_truth(reg: Path, truth: Path) -> tuple[list[str], int]:
 
 
 def held_out_iou(sim, truth: list) -> tuple[float, float]:
-    """A model's held-out prints against the lab's: the mean of per-mask IoU and the IoU
-    pooled over the masks (``metrics.pooled_iou``)."""
+    """A model's held-out prints against the lab's (``truth``: a list of the lab's prints
+    for each mask): the mean of per-mask IoU and the IoU pooled over the masks
+    (``metrics.pooled_iou``), each the mean over the lab's prints."""
     from unscatter.metrics import iou, pooled_iou
 
-    return float(np.nanmean([iou(s, t) for s, t in zip(sim, truth, strict=True)])), pooled_iou(sim, truth)
+    draws = range(len(truth[0]))
+    return (float(np.mean([np.nanmean([iou(s, t[k]) for s, t in zip(sim, truth, strict=True)]) for k in draws])),
+            float(np.mean([pooled_iou(sim, [t[k] for t in truth]) for k in draws])))
 
 
 def _diagnosis(prints, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:

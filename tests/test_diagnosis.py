@@ -832,3 +832,41 @@ def test_power_study_splits_outside_effects_by_what_eq1_leaves_to_find():
     table = {ln.split(":")[0].strip(): ln.split(":")[1].strip() for ln in out if ln.startswith("  ") and ".." in ln}
     assert table == {"-1.000..+0.000": "0 / 1 / 1 of 2", "+0.000..+0.005": "1 / 0 / 0 of 1",
                      "+0.010..+0.020": "0 / 1 / 1 of 2", "+0.020..+1.000": "1 / 0 / 0 of 1"}
+
+
+def test_held_out_scores_are_means_over_independent_prints_of_each_mask():
+    """The power study scores every model against several noisy prints of each held-out
+    mask (one print a mask left a lab's gap to the floor a draw): the first is the one print
+    of before, the others are other prints, and a model's IoU is the mean over them."""
+    from unscatter import metrics
+    from unscatter.lab import Printer, load_config
+
+    bench = _bench("bench_diagnosis")
+    cfg = load_config()
+    printer = Printer(cfg["printer"], 96, float(cfg["batch"]["pixel_size_um"]))
+    yy, xx = np.mgrid[:96, :96]
+    masks = {"block": np.where((abs(yy - 48) < 20) & (abs(xx - 48) < 20), 255, 0).astype(np.uint8),
+             "faint": np.where((xx // 4) % 2 == 0, 150, 0).astype(np.uint8)}
+    level = cfg["microscope"]["level"]
+    truth, floor = bench.held_out_truth(printer, level, masks, 5, draws=3, votes=5)
+    first = bench._lab_truth(printer, level, masks, 5)
+    assert all(len(v) == 3 for v in truth.values())
+    assert all(np.array_equal(truth[k][0], first[k]) for k in masks)
+    assert not np.array_equal(truth["block"][0], truth["block"][1])  # other noise, not the same print again
+    ids = list(masks)
+    sims = {"first": np.stack([truth[k][0] for k in ids]), "floor": np.stack([floor[k] for k in ids])}
+    per_mask, pooled = bench.scored(sims, truth, ids)
+    for k in ids:
+        assert per_mask[k]["first"] == pytest.approx(np.mean([1.0] + [metrics.iou(truth[k][0], t) for t in truth[k][1:]]))
+    assert pooled["floor"] == pytest.approx(np.mean([metrics.pooled_iou(list(sims["floor"]), [truth[k][d] for k in ids])
+                                                     for d in range(3)]))
+    assert pooled["first"] < 1.0
+    # the floor's prints are at the quantiles of the print-to-print dose factor, not at drawn ones: with no other
+    # noise its majority is the noise-free print (the middle quantile is the factor 1)
+    still = load_config(overrides={"printer": {"cells": {"dose_noise": 0.0}}})
+    quiet = load_config(overrides={"printer": {"cells": {"dose_noise": 0.0, "print_to_print": 0.0}}})
+    _, floor = bench.held_out_truth(Printer(still["printer"], 96, float(still["batch"]["pixel_size_um"])), level, masks, 5,
+                                    draws=1, votes=7)
+    noise_free = bench._lab_truth(Printer(quiet["printer"], 96, float(quiet["batch"]["pixel_size_um"])), level, masks, 5)
+    assert still["printer"]["cells"]["print_to_print"] > 0.01
+    assert all(np.array_equal(floor[k], noise_free[k]) for k in masks)
