@@ -266,12 +266,10 @@ def registration_truth(reg: Path, truth: Path) -> tuple[list[str], int]:
 def held_out_iou(sim, truth: list) -> tuple[float, float]:
     """A model's held-out prints against the lab's (``truth``: a list of the lab's prints
     for each mask): the mean of per-mask IoU and the IoU pooled over the masks
-    (``metrics.pooled_iou``), each the mean over the lab's prints."""
-    from unscatter.metrics import iou, pooled_iou
-
-    draws = range(len(truth[0]))
-    return (float(np.mean([np.nanmean([iou(s, t[k]) for s, t in zip(sim, truth, strict=True)]) for k in draws])),
-            float(np.mean([pooled_iou(sim, [t[k] for t in truth]) for k in draws])))
+    (``metrics.pooled_iou``), each the mean over the lab's prints (``bench_diagnosis.scored``)."""
+    ids = list(range(len(truth)))
+    per_mask, pooled = bench_diagnosis.scored({"model": sim}, dict(zip(ids, truth, strict=True)), ids)
+    return float(np.mean([v["model"] for v in per_mask.values()])), pooled["model"]
 
 
 def _diagnosis(prints, params: Path, out: Path, effect, held_masks, truth: list, seed: int) -> dict:
