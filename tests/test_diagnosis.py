@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from unscatter import metrics
 from unscatter.calibration import calibrate
-from unscatter.diagnosis import DEFAULTS, accepted, diagnose, fold_spread, paired_bootstrap, structure_test
+from unscatter.diagnosis import DEFAULTS, accepted, diagnose, fold_spread, paired_bootstrap, structure_significant, structure_test
 from unscatter.fitting import on_bounds
 from unscatter.io import read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
@@ -326,6 +326,30 @@ def test_structure_test_flags_a_common_trend_but_not_noise():
     assert t["p_value"] < 0.01 and t["excess"] > 0.15
     t0 = structure_test(noise, A, N, 999, 0)
     assert t0["p_value"] > 0.01 and t0["excess"] < 0.15
+
+
+def test_a_trend_under_each_prints_own_dose_error_is_found_once_the_dose_is_profiled():
+    """Every print dosed off the fit by its own amount (a multiple of its bins' dose
+    response R, of either sign) hides a trend across the bins from the plain sign flip;
+    with each print's multiple of R taken out, the trend stands out, and without a trend
+    the profiled test finds nothing."""
+    rng = np.random.default_rng(0)
+    B, nb = 16, 10
+    N = np.full((B, nb), 1000.0)
+    A = np.full((B, nb), 40.0)
+    R = rng.uniform(20, 60, (B, nb))
+    dosed = rng.normal(0, 0.6, B)[:, None] * R + rng.normal(0, 4, (B, nb))
+    t = structure_test(dosed + np.linspace(-6, 6, nb)[None], A, N, 999, 0, R)
+    assert t["p_value"] > 0.05 and t["p_dose_profiled"] < 0.01, t
+    t0 = structure_test(dosed, A, N, 999, 0, R)
+    assert t0["p_dose_profiled"] > 0.01, t0
+    t["predictive_gain"] = t0["predictive_gain"] = 2 * DEFAULTS["structure_gain"]  # as if it predicted held-out prints
+    profiled = dict(DEFAULTS, dose_profiled=True)
+    assert structure_significant(t, profiled) and not structure_significant(t, DEFAULTS)  # the default: plain
+    assert not structure_significant(t0, profiled)
+    nulls = [structure_test(np.random.default_rng(s).normal(0, 0.6, B)[:, None] * R + np.random.default_rng(s + 1000).normal(0, 4, (B, nb)),
+                            A, N, 199, s, R)["p_dose_profiled"] for s in range(100)]
+    assert np.mean(np.array(nulls) < 0.05) <= 0.1  # the null keeps its level
 
 
 def _quarters_geometry(B: int, n: int):
