@@ -894,3 +894,69 @@ def test_held_out_scores_are_means_over_independent_prints_of_each_mask():
     noise_free = bench._lab_truth(Printer(quiet["printer"], 96, float(quiet["batch"]["pixel_size_um"])), level, masks, 5)
     assert still["printer"]["cells"]["print_to_print"] > 0.01
     assert all(np.array_equal(floor[k], noise_free[k]) for k in masks)
+
+
+def _kernel_prints(seed: int = 1) -> SimpleNamespace:
+    """16 trial-like masks of 128 x 128 (rectangles at two grey levels) whose every fold's fit
+    is a Gaussian kernel of 2 px at a threshold of half the full grey, printed through
+    smooth dose noise three ways: with a kernel 30 % wider in every print (``common``), each
+    print's kernel 0 to 30 % wider or narrower (``own``; as many of each in every fold), or the fit's kernel
+    (``none``)."""
+    from scipy import ndimage
+
+    from unscatter.diagnosis import DEFAULTS, geometry
+
+    rng = np.random.default_rng(seed)
+    B, n, px = 16, 128, 2.0
+    masks = np.zeros((B, n, n), np.uint8)
+    for m in masks:
+        for _ in range(6):
+            y, x = rng.integers(0, n - 20, 2)
+            h, w = rng.integers(3, 30, 2)
+            m[y:y + h, x:x + w] = rng.choice([160, 255])
+
+    def margin(m, s):
+        return ndimage.gaussian_filter(m / 255.0, s) / 0.5 - 1
+
+    def noise():
+        e = ndimage.gaussian_filter(rng.standard_normal((n, n)), 1.5)
+        return 0.03 * e / e.std()
+
+    fit = np.stack([margin(m, 2.0) for m in masks])
+    folds = [np.arange(i, B, 4) for i in range(4)]
+    prints = dict(common=np.stack([margin(m, 2.6) + noise() >= 0 for m in masks]),
+                  own=np.stack([margin(m, 2.0 * (1 + (-1) ** (i // 4) * rng.uniform(0, 0.3))) + noise() >= 0
+                                for i, m in enumerate(masks)]),
+                  none=np.stack([f + noise() >= 0 for f in fit]))
+    return SimpleNamespace(masks=masks, px=px, geo=geometry(masks, px, DEFAULTS), sims=fit >= 0,
+                           margins=np.stack([fit] * len(folds)).astype(np.float16), folds=folds, prints=prints)
+
+
+def test_kernel_gain_finds_a_kernel_wider_in_every_print_but_not_one_of_each_print_s_own():
+    """The kernel's predictive test (the margin corrected by the mask's grey and its means at
+    several radii, fitted on training prints) gains where every print was made with a wider
+    kernel than the fit's, and not where each print's kernel differs its own way, or not at
+    all (its size then the noise of a held-out score: a few per cent of an error that is
+    the dose noise alone)."""
+    from unscatter.diagnosis import kernel_gain
+
+    for seed in (1, 2):
+        k = _kernel_prints(seed)
+        g = {name: kernel_gain(k.masks, k.px, k.geo, p, k.sims, k.margins, k.folds) for name, p in k.prints.items()}
+        assert g["common"] > 0.3, g
+        assert g["own"] < 0.05 and g["none"] < 0.05, g
+
+
+def test_the_kernel_gain_counts_for_every_diagnostic_but_the_position():
+    from unscatter.diagnosis import DEFAULTS, structure_gain, structure_significant
+
+    g = DEFAULTS["structure_gain"]
+    t = dict(p_value=0.002, p_dose_profiled=0.5, excess=0.01, predictive_gain=-0.01, kernel_gain=2 * g)
+    on, off = dict(DEFAULTS, kernel_correction=True), dict(DEFAULTS, kernel_correction=False)
+    assert structure_significant(t, on) and not structure_significant(t, off)
+    assert structure_gain(t, on) == 2 * g and structure_gain(t, off) == -0.01
+    # the position has no kernel gain (NaN): its own field's gain alone
+    pos = dict(t, kernel_gain=float("nan"))
+    assert not structure_significant(pos, on)
+    # the plain p still gates it
+    assert not structure_significant(dict(t, p_value=0.2), on)
