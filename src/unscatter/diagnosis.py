@@ -919,6 +919,24 @@ def _logistic_fit(X: np.ndarray, y: np.ndarray, m: np.ndarray, w: np.ndarray, ri
     return c
 
 
+def _near_edge(geo: Geometry, prints: np.ndarray) -> tuple:
+    """Per print, the flat indices of its pixels near an edge (those of the position
+    diagnostic) and whether each printed: the pixels the smooth corrections fit and score."""
+    near = [np.flatnonzero(g["position"].ravel() >= 0) for g in geo.bins]
+    return near, [p.ravel()[k] > 0 for p, k in zip(prints, near)]
+
+
+def _fold_split(B: int, idx, near: list, max_pixels: int) -> tuple:
+    """A fold's training prints, its held-out prints, and the step that keeps about
+    ``max_pixels`` of the training prints' pixels near an edge (every step-th): a few
+    weights need far fewer than the 10^6 pixels of 32 prints of 512 x 512 (12 s a fit on
+    all of them)."""
+    test = np.zeros(B, bool)
+    test[np.asarray(idx)] = True
+    train = np.flatnonzero(~test)
+    return train, np.flatnonzero(test), max(1, math.ceil(sum(len(near[i]) for i in train) / max_pixels))
+
+
 def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
                n: int | None = None, ridge: float | None = None, tau: float = 0.03, max_pixels: int = 200_000,
                return_field: bool = False):
@@ -957,16 +975,10 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
         return (0.0, np.zeros((H, W), np.float32)) if return_field else 0.0
     gy, gx = field_factors((H, W), n)
     fields = []
-    near = [np.flatnonzero(g["position"].ravel() >= 0) for g in geo.bins]
-    printed = [p.ravel()[k] > 0 for p, k in zip(prints, near)]
+    near, printed = _near_edge(geo, prints)
     removed = 0.0
     for f, idx in enumerate(folds):
-        test = np.zeros(B, bool)
-        test[np.asarray(idx)] = True
-        train = np.flatnonzero(~test)
-        # the fit on every step-th pixel near an edge: 25 weights need far fewer than the
-        # 10^6 pixels of 32 prints of 512 x 512 (12 s a fit on all of them)
-        step = max(1, math.ceil(sum(len(near[i]) for i in train) / max_pixels))
+        train, test, step = _fold_split(B, idx, near, max_pixels)
         pick = [near[i][::step] for i in train]
         if not sum(len(k) for k in pick):
             continue
@@ -976,7 +988,7 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
                           np.concatenate([np.full(len(k), w[i], np.float32) for i, k in zip(train, pick)]), ridge, tau)
         field = (gy @ c.reshape(n, n).astype(np.float32) @ gx.T).ravel()
         fields.append(field)
-        for i in np.flatnonzero(test):
+        for i in test:
             m, p = margins[f, i].ravel()[near[i]], printed[i]
             removed += w[i] * (np.count_nonzero((m >= 0) != p) - np.count_nonzero((m + field[near[i]] >= 0) != p))
     if return_field:
@@ -1010,15 +1022,11 @@ def kernel_gain(masks: np.ndarray, pixel_um: float, geo: Geometry, prints: np.nd
     # the ridge on the features' weights only (for conditioning): none on the offset and the margin's slope, whose
     # size is the prints' noise over tau (a ridge there bends the correction toward the features that follow the margin)
     pen = np.r_[np.full(len(radii_um) + 1, ridge), 0.0, 0.0]
-    near = [np.flatnonzero(g["position"].ravel() >= 0) for g in geo.bins]
+    near, printed = _near_edge(geo, prints)
     X = [kernel_features(m, pixel_um, radii_um).reshape(len(radii_um) + 1, -1)[:, k].T for m, k in zip(masks, near)]
-    printed = [p.ravel()[k] > 0 for p, k in zip(prints, near)]
     removed = 0.0
     for f, idx in enumerate(folds):
-        test = np.zeros(B, bool)
-        test[np.asarray(idx)] = True
-        train = np.flatnonzero(~test)
-        step = max(1, math.ceil(sum(len(near[i]) for i in train) / max_pixels))
+        train, test, step = _fold_split(B, idx, near, max_pixels)
         if not sum(len(near[i][::step]) for i in train):
             continue
         Xt = np.concatenate([X[i][::step] for i in train])
@@ -1032,7 +1040,7 @@ def kernel_gain(masks: np.ndarray, pixel_um: float, geo: Geometry, prints: np.nd
                           np.concatenate([np.full(len(near[i][::step]), w[i], np.float32) for i in train]), pen, tau)
         if c[-1] <= 0:  # the margin no longer predicts the print: no correction of it
             continue
-        for i in np.flatnonzero(test):
+        for i in test:
             m, p = margins[f, i].ravel()[near[i]].astype(np.float32), printed[i]
             corr = ((X[i] - mu) @ c[:-2].astype(np.float32) + c[-2]) / c[-1]
             removed += w[i] * (np.count_nonzero((m >= 0) != p) - np.count_nonzero((m + corr >= 0) != p))
