@@ -942,7 +942,7 @@ def test_kernel_gain_finds_a_kernel_wider_in_every_print_but_not_one_of_each_pri
 
     for seed in (1, 2):
         k = _kernel_prints(seed)
-        g = {name: kernel_gain(k.masks, k.px, k.geo, p, k.sims, k.margins, k.folds) for name, p in k.prints.items()}
+        g = {name: kernel_gain(k.geo, p, k.sims, k.margins, k.folds) for name, p in k.prints.items()}
         assert g["common"] > 0.3, g
         assert g["own"] < 0.05 and g["none"] < 0.05, g
 

@@ -149,10 +149,9 @@ DEFAULTS = dict(
     structure_min=0.0,  # ... and excess systematic residual at least this share of the mismatch (was 0.15: a structure in
     # a few bins is diluted by the others; the held-out gain gates its size, structure_significant) ...
     structure_gain=0.015,  # ... and a per-bin correction (predictive_gain; the position: field_gain) removes this
-    # (kernel_correction: or, for every diagnostic but the position, a correction linear in the mask's grey and its
-    # means at the radii_um, kernel_gain: no-effect labs 0 of 17 flagged either way, outside labs 9 -> 11 of 17 on
-    # three fresh seeds; README, "A kernel-shaped correction in the structure test") ...
-    # share of the held-out error
+    # share of the held-out error (kernel_correction: or, for every diagnostic but the position, a correction linear in
+    # the mask's grey and its means at the radii_um, kernel_gain: no-effect labs 0 of 17 flagged either way, outside
+    # labs 9 -> 11 of 17 on three fresh seeds; README, "A kernel-shaped correction in the structure test")
     # (no-effect labs: 0 of 18 flagged at 1.5 % or at 3 %; outside effects that leave Eq. 1 0.01 or more below the
     # lab's floor: 8 of 9 flagged at 1.5 %, 6 of 9 at 3 %; bench_diagnosis, 4 seeds, with per-cell position offsets.
     # With field_gain, 3 fresh seeds: no-effect labs 0 of 14 flagged, outside labs 7 of 14)
@@ -625,6 +624,9 @@ class Geometry:
     mask_amp: np.ndarray  # (nbins,) radially averaged |FFT(mask)| summed over prints
     freq: np.ndarray  # spectrum bin centres (cycles per mm)
     fbin: np.ndarray  # (H, W) spectrum bin of each frequency
+    # per print, (pixels near an edge, 1 + len(radii_um)) float32: the mask's grey and its means at the radii_um at the
+    # pixels of the position diagnostic, in their flat order (kernel_gain's terms)
+    features: list = field(default_factory=list)
 
 
 def _signed_distance_px(lit: np.ndarray) -> np.ndarray:
@@ -672,17 +674,19 @@ def geometry(masks: np.ndarray, pixel_um: float, s: dict) -> Geometry:
     fbin = np.minimum((fr / 0.5 * nb).astype(int), nb)  # nb: beyond Nyquist, not used
     freq = (np.arange(nb) + 0.5) * 0.5 / nb / pixel_um * 1000  # cycles per mm
     mask_amp = np.zeros(nb)
-    out = []
+    out, feats = [], []
     for m in masks:
         M = m.astype(np.float64) / 255
         lit = m > 0
         sd = _signed_distance_px(lit)
         near = np.abs(sd) <= band
         b = {}
+        kf = [M[near]]
         b["signed_distance"] = np.where(np.abs(sd) < nd, np.floor(sd).astype(np.int64) + nd, -1).astype(np.int16)
         for r in s["radii_um"]:
             size = 2 * int(round(r / pixel_um)) + 1
             dens = ndimage.uniform_filter(M, size=size, mode="constant")
+            kf.append(dens[near])
             idx = np.minimum((dens * 10).astype(int), 9)
             b[f"density_{int(r)}um"] = np.where(near, idx, -1).astype(np.int16)
         if lit.any():
@@ -702,8 +706,9 @@ def geometry(masks: np.ndarray, pixel_um: float, s: dict) -> Geometry:
         else:
             b["orientation"] = np.full(m.shape, -1, np.int16)
         out.append(b)
+        feats.append(np.stack(kf, 1).astype(np.float32))
         mask_amp += _radial(np.abs(np.fft.rfft2(M)), fbin, nb)
-    return Geometry(names, labels, centres, out, mask_amp, freq, fbin)
+    return Geometry(names, labels, centres, out, mask_amp, freq, fbin, feats)
 
 
 def _radial(amp: np.ndarray, fbin: np.ndarray, nb: int) -> np.ndarray:
@@ -997,19 +1002,11 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     return float(removed / total)
 
 
-def kernel_features(mask: np.ndarray, pixel_um: float, radii_um) -> np.ndarray:
-    """(F, H, W): the mask's grey (0..1) and its mean over squares of each radius: how much
-    light a pixel's neighbourhood sends it at each scale, the terms of a kernel's shape."""
-    M = mask.astype(np.float32) / 255
-    feats = [M] + [ndimage.uniform_filter(M, size=2 * int(round(r / pixel_um)) + 1, mode="constant") for r in radii_um]
-    return np.stack(feats)
-
-
-def kernel_gain(masks: np.ndarray, pixel_um: float, geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray,
-                folds: list, weights=None, radii_um=(10.0, 30.0, 100.0, 300.0), ridge: float = 1e-4, tau: float = 0.03,
-                max_pixels: int = 200_000) -> float:
+def kernel_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.ndarray, folds: list, weights=None,
+                ridge: float = 1e-4, tau: float = 0.03, max_pixels: int = 200_000) -> float:
     """The share of the held-out error that a correction of the margin linear in the
-    mask's grey and its means at several radii (``kernel_features``) removes from prints
+    mask's grey and its means at the radii of the density diagnostics (``Geometry.features``:
+    how much light a pixel's neighbourhood sends it at each scale) removes from prints
     it was not fitted on: a kernel of another shape, a dose response of another curve,
     with five numbers where the binned corrections fit one per bin. Fitted and scored as
     ``field_gain`` (per fold on its training prints' pixels near an edge, logistic loss
@@ -1021,9 +1018,9 @@ def kernel_gain(masks: np.ndarray, pixel_um: float, geo: Geometry, prints: np.nd
         return 0.0
     # the ridge on the features' weights only (for conditioning): none on the offset and the margin's slope, whose
     # size is the prints' noise over tau (a ridge there bends the correction toward the features that follow the margin)
-    pen = np.r_[np.full(len(radii_um) + 1, ridge), 0.0, 0.0]
+    X = geo.features
+    pen = np.r_[np.full(X[0].shape[1], ridge), 0.0, 0.0]
     near, printed = _near_edge(geo, prints)
-    X = [kernel_features(m, pixel_um, radii_um).reshape(len(radii_um) + 1, -1)[:, k].T for m, k in zip(masks, near)]
     removed = 0.0
     for f, idx in enumerate(folds):
         train, test, step = _fold_split(B, idx, near, max_pixels)
@@ -1106,7 +1103,7 @@ def spectrum(geo: Geometry, prints: np.ndarray, sims: np.ndarray) -> dict:
 
 
 def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: np.ndarray, folds: list, weights, s: dict,
-                       seed: int, stage: str, masks: np.ndarray | None = None, pixel_um: float | None = None):
+                       seed: int, stage: str):
     """Rows for diagnostics.tsv and structure.tsv of one set of held-out predictions
     (``margins``: ``_Context.margins`` of its fold fits)."""
     rows, tests = [], []
@@ -1119,8 +1116,8 @@ def diagnose_residuals(geo: Geometry, prints: np.ndarray, ho: Heldout, margins: 
     if "position" in geo.names:
         gains["position"], field = field_gain(geo, prints, sims, margins, folds, weights, s["field_basis"], s["field_ridge"],
                                               s["margin_softness"], return_field=True)
-    kern = (kernel_gain(masks, pixel_um, geo, prints, sims, margins, folds, weights, s["radii_um"], tau=s["margin_softness"])
-            if masks is not None and "position" in geo.names else float("nan"))
+    kern = (kernel_gain(geo, prints, sims, margins, folds, weights, tau=s["margin_softness"])
+            if geo.features and "position" in geo.names else float("nan"))
     for name in geo.names:
         S, A, N = sums[name]
         n = N.sum(0)
@@ -1437,14 +1434,12 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
     geo = geometry(data.masks, px, s)
     weights = fits.weights
     margins = _Context(base, data, device, s, shared).margins(base_ho.fold_values)
-    rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho, margins, folds, weights, s, seed, "before",
-                                                       data.masks, px)
+    rows_b, tests_b, sums_b, sp_b = diagnose_residuals(geo, data.prints, base_ho, margins, folds, weights, s, seed, "before")
     if cur is base_ho:
         rows_a, tests_a, sums_a, sp_a = [], [dict(t, stage="after") for t in tests_b], sums_b, sp_b
     else:
         margins = _Context(cur_params, data, device, s, shared).margins(cur.fold_values)
-        rows_a, tests_a, sums_a, sp_a = diagnose_residuals(geo, data.prints, cur, margins, folds, weights, s, seed, "after",
-                                                           data.masks, px)
+        rows_a, tests_a, sums_a, sp_a = diagnose_residuals(geo, data.prints, cur, margins, folds, weights, s, seed, "after")
     del margins
     unexplained = [t["diagnostic"] for t in tests_a if t["significant"]]
 
