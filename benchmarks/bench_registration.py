@@ -434,6 +434,7 @@ REASON_KINDS = (  # qc.tsv reason prefixes, in the order reason_lines reports th
     ("scale held, pose rests on sizes", ("pose not determined by the print: its scale held",)),
     ("pose rests on the kernel's shape", ("pose not determined by the print: it rests on the shape",)),
     ("pose rests on edges off the batch's", ("pose rests on edges off",)),
+    ("pose rests on the lamp's field", ("pose rests on the lamp's field",)),
     ("pose uncertain or free", ("pose not determined by the print: uncertain", "pose not determined by the print: free")),
     ("ambiguous: the mask's symmetry", ("ambiguous: the mask maps",)),
     ("ambiguous: a rival pose", ("ambiguous: a pose",)),

@@ -1423,6 +1423,27 @@ def test_a_weak_hot_spot_near_the_limit_is_found_by_the_folds():
     assert np.array_equal(x2, x3) and fit3 == fit2, (x2[13:17], x3[13:17])
 
 
+def test_lamp_fields_that_fit_as_well_are_those_of_a_spot_the_prints_do_not_fix(hot_spot_prints):
+    """``field_alternatives``: the field fitted again with every number free, then with the
+    spot's width halved and doubled and held. Twelve prints of a 50 % spot rule both out
+    (measured: the mean NCC 2.6e-4 and 2.3e-4 below the best, beyond the 2e-4 a spot must
+    gain); five prints of a 15 % spot do not (1.7e-5 and 3e-6 below), and both come back,
+    each at its width (the second at the width's bound, 0.8); a template without a spot
+    has none."""
+    from unscatter.imaging.template import PrintTemplate, field_alternatives
+
+    tmpl, truth, prints = hot_spot_prints
+    assert field_alternatives(tmpl, prints["hot"], truth) == []
+    every = field_alternatives(tmpl, prints["hot"], truth, tol=np.inf)
+    assert [w for _, _, w in every] == pytest.approx([0.175, 0.7], abs=0.01) and all(g < -2e-4 for _, g, _ in every)
+    weak = truth.copy()
+    weak[13], weak[16] = 0.15, 0.5
+    alts = field_alternatives(tmpl, template_prints(tmpl, weak, 5, np.random.default_rng(4)), weak)
+    assert [w for _, _, w in alts] == pytest.approx([0.23, 0.8], abs=0.01), [(w, g) for _, g, w in alts]
+    assert all(xa[16] == w and xa[13] > 0 for xa, _, w in alts)
+    assert field_alternatives(tmpl, prints["hot"], np.r_[truth[:13], PrintTemplate.START[13:]]) == []
+
+
 def test_no_hot_spot_is_found_where_the_field_is_smooth(hot_spot_prints):
     """The same prints with a smooth field: the search's best bump does not carry over to
     the prints it was not fitted to, and the template keeps none."""

@@ -24,7 +24,8 @@ from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidate
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
 from .parallel import forked_map
-from .template import PrintTemplate, blurred_mask, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc, well_fitted
+from .template import (PrintTemplate, blurred_mask, field_alternatives, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc,
+                       well_fitted)
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +96,9 @@ class Settings:
     edge_pull_sds: float = 6.0  # a print whose fitted edge offsets lie this many of the batch's spreads off the
     # batch's (size_error) is refitted with them held there ...
     edge_pull_px: float = 1.0  # ... and fails where that moves its pose further than this (design px, RMS over the field)
+    field_alternatives: bool = True  # a print is refitted under each lamp field that the batch's placed prints fit
+    # about as well as their best (template.field_alternatives), and fails where that moves its pose further
+    # than edge_pull_px (README, "The lamp's field that the template prints do not fix")
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
@@ -1559,6 +1563,27 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             pulled[mid] = r
             log.info("%s: edge offsets %.1f of the batch's spreads off its; held there, the pose moves %.2f px", mid, *r)
 
+    # 5d, last. The lamp's field that the placed prints leave open (``field_alternatives``): each print refitted under
+    # each such field; its largest move (px), that field's spot width and its mean NCC against the prints' best field
+    field_moved, alternatives = {}, []
+    if s.field_alternatives and len(placed_ids) >= s.template_min_prints:
+        alternatives = field_alternatives(quarter, list(pool.map(lambda mid: pair(mid, choices[mid].fit.M), placed_ids)), x,
+                                          tol=s.hot_spot_gain)
+        field_cands = [mid for mid in todo if choices[mid].fit is not None]
+        for xa, ncc_gain, spot_width in alternatives:
+            def moved_by(mid, xa=xa):
+                f = choices[mid].fit
+                g = refine(smooth[mid], f, full, full.exposure(full.padded(masks[mid]), xa), xa, s.mode, iters=12,
+                           scale_prior=f.scale_prior)
+                return pose_distance(f.M, g.M, grid, MARGIN)
+
+            for mid, moved in zip(field_cands, pool.map(moved_by, field_cands)):
+                if moved > field_moved.get(mid, (0.0,))[0]:
+                    field_moved[mid] = (moved, spot_width, ncc_gain)
+        if alternatives:
+            log.info("lamp fields that the placed prints fit as well: %d; prints they move more than %.1f px: %s",
+                     len(alternatives), s.edge_pull_px, sorted(m for m, r in field_moved.items() if r[0] > s.edge_pull_px))
+
     # 5e. the images the prints are thresholded on. A stain is the image's, not the print's:
     # thresholded as it is, a print's dim part comes out too small and its bright part too
     # large, and the batch's dense level (its brightest polymer) is where the stain is
@@ -1790,6 +1815,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
                            f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
+        if mid in field_moved and field_moved[mid][0] > s.edge_pull_px:
+            fm = field_moved[mid]  # (move, width, NCC against the best): not named in this scope, whose gain is the print's
+            reasons.append(f"pose rests on the lamp's field, which the batch's prints do not fix: a hot spot {fm[1]:.2f} wide "
+                           f"fits the prints whose features place their pose as well (mean NCC {fm[2]:+.5f} against the "
+                           f"best field) and moves this print's pose {fm[0]:.2f} px (more than {s.edge_pull_px})")
         if mid in pulled and pulled[mid][1] > s.edge_pull_px:
             f = ch.fit
             reasons.append(f"pose rests on edges off the batch's: its fitted edge offsets (all round {f.edge:+.2f} px, by "
@@ -1872,6 +1902,11 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                    edge_pull=dict(sds=s.edge_pull_sds, px=s.edge_pull_px, refitted=len(pulled),
                                                                   moved=sorted(mid for mid, r in pulled.items()
                                                                                if r[1] > s.edge_pull_px)),
+                                                   field_alternatives=dict(
+                                                       tried=s.field_alternatives,
+                                                       widths=[round(w, 4) for _, _, w in alternatives],
+                                                       ncc_gains=[float(g) for _, g, _ in alternatives],
+                                                       moved=sorted(mid for mid, r in field_moved.items() if r[0] > s.edge_pull_px)),
                                                    empty_cure_test=cure_test,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
