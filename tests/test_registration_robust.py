@@ -1444,6 +1444,30 @@ def test_lamp_fields_that_fit_as_well_are_those_of_a_spot_the_prints_do_not_fix(
     assert field_alternatives(tmpl, prints["hot"], np.r_[truth[:13], PrintTemplate.START[13:]]) == []
 
 
+def test_a_print_that_fails_anyway_is_known_before_the_last_refits():
+    """``batch.fails_anyway``, which spares the field alternatives' refits (step 5d) the
+    prints that QC fails already: a converged pose with no rival and small spreads passes;
+    each of QC's reasons on the chosen pose alone (not converged, the mask's symmetry, a
+    rival close, the pose's spread, the spread from the feature sizes, that with the
+    kernel's, an unknown size) fails it."""
+    from dataclasses import replace
+
+    from unscatter.imaging.batch import PoseChoice, Settings, fails_anyway
+    from unscatter.imaging.pose import Fit
+
+    s = Settings()
+    good = Fit(np.eye(2, 3), 1.0, 0.0, np.zeros(7), 0.1, 0.2, True, 5, size_sd=0.3, model_sd=0.1)
+    ch = PoseChoice(good, evidence=9.0)
+    assert not fails_anyway(ch, s)
+    assert fails_anyway(PoseChoice(None), s)
+    assert fails_anyway(replace(ch, symmetry=90.0), s)
+    assert fails_anyway(replace(ch, evidence=s.min_evidence / 2), s)
+    assert not fails_anyway(replace(ch, aside=0.0), s)  # a rival set aside by a contradiction is no reason of its own
+    for change in (dict(converged=False), dict(pose_sd=2 * s.max_pose_sd), dict(size_sd=1.1 * s.max_size_sd),
+                   dict(model_sd=s.max_size_sd), dict(size_sd=float("nan"))):
+        assert fails_anyway(replace(ch, fit=replace(good, **change)), s), change
+
+
 def test_no_hot_spot_is_found_where_the_field_is_smooth(hot_spot_prints):
     """The same prints with a smooth field: the search's best bump does not carry over to
     the prints it was not fitted to, and the template keeps none."""
