@@ -1176,6 +1176,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             log.info("uneven staining in %d prints (polymer brightness %.1f to %.1f %% across them): their images divided "
                      "by it", len(stains), 100 * min(stains.values()), 100 * max(stains.values()))
     rechosen = stain_refit = False
+    spot_kept = None  # the mean NCC by which the prints fit the spot found before the stain's division (where lost after it)
     if len(stains) >= s.template_min_prints:  # the template, fitted on the stained images, fitted again (a stain
         # takes the place of the lamp's hot spot and of the core's anisotropy) from where it is, the hot spot searched for
         # again, and every print chosen again with it. From the template's start instead: a lab's rectangles print
@@ -1183,7 +1184,18 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         refit = uncontested()
         x = np.r_[x[:STAIN_SLOPE], s.stain_slope_sd, x[STAIN_SLOPE + 1:]]
         if len(refit) >= s.template_min_prints:
-            x, _, _, template_prints = fit_batch_template({mid: choices[mid].fit.M for mid in refit}, hot_spot_again(x))
+            refit_poses = {mid: choices[mid].fit.M for mid in refit}
+            x_spot = x
+            x, _, pairs_r, template_prints = fit_batch_template(refit_poses, hot_spot_again(x))
+            if x_spot[13] > 0 and not x[13] > 0:  # the spot found before the division, lost in the search after it: kept
+                # where the prints fit it better (an uneven stain the spot's dose makes brighter in part is divided
+                # out with the stain, and an elliptical core takes its place; seed 124444929's lab 4)
+                x_k, _, _, used_k = fit_batch_template(refit_poses, x_spot, hot_spot=False)
+                spot_kept = gain_k = mean_ncc(quarter, pairs_r, x_k) - mean_ncc(quarter, pairs_r, x)
+                log.info("lamp hot spot found before the stain's division: mean NCC %+.5f against the search after it: %s",
+                         gain_k, "kept" if gain_k >= s.hot_spot_gain else "not kept")
+                if gain_k >= s.hot_spot_gain:
+                    x, template_prints = x_k, used_k
             bar.total += len(todo)
             choices = chosen(todo, x, {mid: ch.poses + list(starts[mid][0]) for mid, ch in choices.items() if ch.fit is not None})
             rechosen = stain_refit = True
@@ -1922,7 +1934,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
                                                                      width_counted=False, prints=kernel_prints),
                                                    stain=dict(prints=len(stains), sigma_px=s.stain_sigma_px, min_sd=s.stain_min_sd,
-                                                              template_refitted=stain_refit, thresholded_divided=n_divided,
+                                                              template_refitted=stain_refit,
+                                                              spot_kept_gain=None if spot_kept is None else float(spot_kept),
+                                                              thresholded_divided=n_divided,
                                                               by_brightness=n_bright,
                                                               dense_level_as_imaged=dense_as_imaged),
                                                    stated_scatter=scatter))
