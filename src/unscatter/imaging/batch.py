@@ -1589,7 +1589,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     if s.field_alternatives and len(placed_ids) >= s.template_min_prints:
         alternatives = field_alternatives(quarter, list(pool.map(lambda mid: pair(mid, choices[mid].fit.M), placed_ids)), x,
                                           tol=s.hot_spot_gain)
-        # the prints that pass so far: one that fails anyway needs no refit (a third to a half of a batch's fits)
+        # the prints that pass so far: one that fails anyway needs no refit (4 of 30 and 10 of 22 posed prints in two labs)
         field_cands = [mid for mid in todo if not fails_anyway(choices[mid], s)
                        and not (mid in pulled and pulled[mid][1] > s.edge_pull_px)]
         for xa, ncc_gain, spot_width in alternatives:
