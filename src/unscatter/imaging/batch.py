@@ -1191,10 +1191,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 # where the prints fit it better (an uneven stain the spot's dose makes brighter in part is divided
                 # out with the stain, and an elliptical core takes its place; seed 124444929's lab 4)
                 x_k, _, _, used_k = fit_batch_template(refit_poses, x_spot, hot_spot=False)
-                spot_kept = gain_k = mean_ncc(quarter, pairs_r, x_k) - mean_ncc(quarter, pairs_r, x)
+                spot_kept = mean_ncc(quarter, pairs_r, x_k) - mean_ncc(quarter, pairs_r, x)
                 log.info("lamp hot spot found before the stain's division: mean NCC %+.5f against the search after it: %s",
-                         gain_k, "kept" if gain_k >= s.hot_spot_gain else "not kept")
-                if gain_k >= s.hot_spot_gain:
+                         spot_kept, "kept" if spot_kept >= s.hot_spot_gain else "not kept")
+                if spot_kept >= s.hot_spot_gain:
                     x, template_prints = x_k, used_k
             bar.total += len(todo)
             choices = chosen(todo, x, {mid: ch.poses + list(starts[mid][0]) for mid, ch in choices.items() if ch.fit is not None})
@@ -1582,6 +1582,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         if r is not None:
             pulled[mid] = r
             log.info("%s: edge offsets %.1f of the batch's spreads off its; held there, the pose moves %.2f px", mid, *r)
+    edge_moved = {mid for mid, r in pulled.items() if r[1] > s.edge_pull_px}  # QC fails these (``finish``)
 
     # 5d, last. The lamp's field that the placed prints leave open (``field_alternatives``): each print refitted under
     # each such field; its largest move (px), that field's spot width and its mean NCC against the prints' best field
@@ -1590,8 +1591,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         alternatives = field_alternatives(quarter, list(pool.map(lambda mid: pair(mid, choices[mid].fit.M), placed_ids)), x,
                                           tol=s.hot_spot_gain)
         # the prints that pass so far: one that fails anyway needs no refit (4 of 30 and 10 of 22 posed prints in two labs)
-        field_cands = [mid for mid in todo if not fails_anyway(choices[mid], s)
-                       and not (mid in pulled and pulled[mid][1] > s.edge_pull_px)]
+        field_cands = [mid for mid in todo if not fails_anyway(choices[mid], s) and mid not in edge_moved]
         for xa, ncc_gain, spot_width in alternatives:
             def moved_by(mid, xa=xa):
                 f = choices[mid].fit
@@ -1602,9 +1602,10 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             for mid, moved in zip(field_cands, pool.map(moved_by, field_cands)):
                 if moved > field_moved.get(mid, (0.0,))[0]:
                     field_moved[mid] = (moved, spot_width, ncc_gain)
-        if alternatives:
-            log.info("lamp fields that the placed prints fit as well: %d; prints they move more than %.1f px: %s",
-                     len(alternatives), s.edge_pull_px, sorted(m for m, r in field_moved.items() if r[0] > s.edge_pull_px))
+    field_moved_far = sorted(mid for mid, r in field_moved.items() if r[0] > s.edge_pull_px)  # QC fails these (``finish``)
+    if alternatives:
+        log.info("lamp fields that the placed prints fit as well: %d; prints they move more than %.1f px: %s",
+                 len(alternatives), s.edge_pull_px, field_moved_far)
 
     # 5e. the images the prints are thresholded on. A stain is the image's, not the print's:
     # thresholded as it is, a print's dim part comes out too small and its bright part too
@@ -1837,12 +1838,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            f"with the kernel's tail share off by {KERNEL_TAIL * kernel_off['tail']:.2f}, as far as the "
                            f"batch's prints show it off, and with its spread from the sizes of its features ({ch.fit.size_sd:.2f} px), "
                            f"{min(float(np.hypot(ch.fit.size_sd, ch.fit.model_sd)), 1e6):.2f} px, more than {s.max_size_sd}")
-        if mid in field_moved and field_moved[mid][0] > s.edge_pull_px:
+        if mid in field_moved_far:
             fm = field_moved[mid]  # (move, width, NCC against the best): not named in this scope, whose gain is the print's
             reasons.append(f"pose rests on the lamp's field, which the batch's prints do not fix: a hot spot {fm[1]:.2f} wide "
                            f"fits the prints whose features place their pose as well (mean NCC {fm[2]:+.5f} against the "
                            f"best field) and moves this print's pose {fm[0]:.2f} px (more than {s.edge_pull_px})")
-        if mid in pulled and pulled[mid][1] > s.edge_pull_px:
+        if mid in edge_moved:
             f = ch.fit
             reasons.append(f"pose rests on edges off the batch's: its fitted edge offsets (all round {f.edge:+.2f} px, by "
                            f"direction {f.edge_c2:+.2f}, {f.edge_s2:+.2f}) lie {pulled[mid][0]:.0f} times the batch's "
@@ -1922,13 +1923,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                                                        held_within=held_scale[1]),
                                                    edge_places=edge_places, feature_sizes=feature_sizes,
                                                    edge_pull=dict(sds=s.edge_pull_sds, px=s.edge_pull_px, refitted=len(pulled),
-                                                                  moved=sorted(mid for mid, r in pulled.items()
-                                                                               if r[1] > s.edge_pull_px)),
+                                                                  moved=sorted(edge_moved)),
                                                    field_alternatives=dict(
                                                        tried=s.field_alternatives,
                                                        widths=[round(w, 4) for _, _, w in alternatives],
                                                        ncc_gains=[float(g) for _, g, _ in alternatives],
-                                                       moved=sorted(mid for mid, r in field_moved.items() if r[0] > s.edge_pull_px)),
+                                                       moved=field_moved_far),
                                                    empty_cure_test=cure_test,
                                                    kernel_shape=dict(tail=kernel_off["tail"], width=kernel_off["wider"],
                                                                      tail_share=KERNEL_TAIL, width_change=round(KERNEL_WIDTH - 1, 3),
