@@ -44,6 +44,7 @@ import numpy as np
 
 from . import metrics
 from .io import InputError, list_pngs, output_dir, read_batch_meta, read_mask, read_print, read_tsv, write_png, write_tsv, write_yaml
+from .masks import carries_marks, fiducial_marks, with_fiducials
 from .settings import BENCHMARK, PAPER_PIXEL_SIZE_UM
 
 log = logging.getLogger(__name__)
@@ -156,8 +157,13 @@ def _method_masks(masks_by_method: dict, designs: dict) -> dict:
     return out
 
 
-def benchmark_masks(designs, masks_by_method: dict, doses=IDENTICAL_DOSES, pv_band: bool = True) -> tuple[dict, dict]:
-    """Every mask of the benchmark and its exposure: (id -> uint8 mask, id -> exposure)."""
+def benchmark_masks(designs, masks_by_method: dict, doses=IDENTICAL_DOSES, pv_band: bool = True,
+                    fiducials: bool = False) -> tuple[dict, dict]:
+    """Every mask of the benchmark and its exposure: (id -> uint8 mask, id -> exposure).
+
+    ``fiducials``: the registration marks (``masks.with_fiducials``) on every mask of each
+    design whose masks (every method's and the identical ones) leave the marks' cleared
+    band empty; a design that reaches into it is printed without them (logged)."""
     designs = _designs(designs)
     by_method = _method_masks(masks_by_method, designs)
     exposures = (1.0,) + (tuple(PV_EXPOSURES) if pv_band else ())
@@ -165,6 +171,12 @@ def benchmark_masks(designs, masks_by_method: dict, doses=IDENTICAL_DOSES, pv_ba
     for name, d in designs.items():
         entries = [(m, 1.0, by_method[m][name]) for m in by_method]
         entries += [(IDENTICAL, dose, identical_mask(d, dose)) for dose in doses]
+        if fiducials:
+            clear = fiducial_marks(d.shape[0])[1] if d.shape[0] == d.shape[1] else None
+            if clear is not None and not any(mask[clear].any() for _, _, mask in entries):
+                entries = [(method, dose, with_fiducials(mask)) for method, dose, mask in entries]
+            else:
+                log.warning("%s: printed without registration marks: its masks reach into the marks' corners", name)
         for method, dose, mask in entries:
             for e in exposures:
                 pid = print_id(name, method, dose, e)
@@ -201,12 +213,22 @@ def exposure_token(exposure: float) -> str:
 
 
 def read_registered(prints_dir) -> dict:
-    """id -> bool print of a registration output (None where registration failed)."""
+    """id -> bool print of a registration output (None where registration failed).
+
+    A print whose mask (qc.tsv's ``mask``) carries the registration marks is returned
+    without them: the marks' cleared band, empty in its design, is set to no print."""
     prints_dir = Path(prints_dir)
     qc = prints_dir / "qc.tsv"
     if qc.is_file():
-        rows = read_tsv(qc)
-        return {r["id"]: (read_print(prints_dir / f"{r['id']}.png") if r["status"] in ("ok", "empty") else None) for r in rows}
+        out = {}
+        for r in read_tsv(qc):
+            p = read_print(prints_dir / f"{r['id']}.png") if r["status"] in ("ok", "empty") else None
+            mask = (prints_dir / r["mask"]).resolve() if p is not None and r.get("mask") else None
+            if mask is not None and mask.is_file() and carries_marks(read_mask(mask)):
+                p = p.copy()
+                p[fiducial_marks(p.shape[0])[1]] = False
+            out[r["id"]] = p
+        return out
     files = list_pngs(prints_dir)
     if not files:
         raise InputError(prints_dir, "no registered prints (qc.tsv or <id>.png)")
@@ -382,16 +404,24 @@ What to do
 
 Contents: {n} masks, {designs} designs x ({methods}) x exposures ({exposures}).
 Ids: <design>__<method or identical_<grey %>>[__x<exposure %>]; job.tsv lists them.
+{marks}"""
+MARKS_NOTE = """
+{marked} of the {designs} designs' masks carry three registration marks: solid squares at
+full grey in three corners of the field, with nothing else near them. Print them as they
+are. The registration places each print on its marks, whatever the design (a star or a
+grating that maps onto itself turned or shifted, a dim print), and the scoring leaves the
+marks' corners out.
 """
 
 
 def write_print_job(masks_by_method: dict, designs, out_dir, pv_band: bool = True, doses=IDENTICAL_DOSES,
-                    batch_meta: dict | None = None) -> list[dict]:
+                    batch_meta: dict | None = None, fiducials: bool = BENCHMARK.default.fiducials) -> list[dict]:
     """A print batch without images: masks/<id>.png, batch.yaml to fill in, README.txt, job.tsv
-    (``out_dir``: a new folder or an earlier print job)."""
+    (``out_dir``: a new folder or an earlier print job). ``fiducials``: the registration
+    marks on the masks of every design that leaves room for them (``benchmark_masks``)."""
     sources = [designs, *masks_by_method.values()]
     designs = _designs(designs)
-    masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band)
+    masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band, fiducials)
     with output_dir(out_dir, command="benchmark job", inputs=sources) as tmp:
         return _write_job(masks, designs, masks_by_method, tmp, pv_band, doses, batch_meta)
 
@@ -415,9 +445,11 @@ def _write_job(masks: dict, designs: dict, masks_by_method: dict, out_dir: Path,
     (out_dir / "images").mkdir(exist_ok=True)  # where the microscope images go
     methods = ", ".join(list(masks_by_method) + [label(IDENTICAL, d) for d in doses])
     e0 = float(meta["exposure_s"])
+    marked = len({parse_print_id(pid)["design"] for pid, m in masks.items() if carries_marks(m)})
     (out_dir / "README.txt").write_text(README.format(
         x090=f"{0.9 * e0:g}", x110=f"{1.1 * e0:g}", nominal=f"{e0:g}", n=len(masks), designs=len(designs), methods=methods,
-        exposures=", ".join(f"{int(round(100 * e))} %" for e in ((1.0,) + (tuple(PV_EXPOSURES) if pv_band else ())))))
+        exposures=", ".join(f"{int(round(100 * e))} %" for e in ((1.0,) + (tuple(PV_EXPOSURES) if pv_band else ()))),
+        marks=MARKS_NOTE.format(marked=marked, designs=len(designs)) if marked else ""))
     return rows
 
 

@@ -556,11 +556,13 @@ def benchmark():
 @click.argument("out_dir", type=click.Path(file_okay=False, path_type=Path))
 @_method_option
 @_doses_option
-def benchmark_job(designs_dir, out_dir, methods, doses):
+@click.option("--fiducials/--no-fiducials", default=S.BENCHMARK.default.fiducials, show_default=True,
+              help="Registration marks in three corners of the masks of every design that leaves room for them.")
+def benchmark_job(designs_dir, out_dir, methods, doses, fiducials):
     """Write the print job of the benchmark (masks/, job.tsv, batch.yaml, README.txt) to OUT_DIR."""
     from .benchmark import write_print_job
 
-    rows = write_print_job(_methods(methods), designs_dir, out_dir, doses=_doses(doses))
+    rows = write_print_job(_methods(methods), designs_dir, out_dir, doses=_doses(doses), fiducials=fiducials)
     click.echo(f"print job of {len(rows)} masks -> {out_dir} (see {out_dir / 'README.txt'})")
 
 

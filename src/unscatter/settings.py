@@ -416,6 +416,10 @@ BENCHMARK = Stage(
                     "and the other way round) and benchmarked as <method>_<model>, e.g. ilt_base, so the benchmark "
                     "compares the two models. ilt needs no training; nn and nn+ilt train a second pair of networks. "
                     "Empty - no comparison.", unique=True, items=_choice(None, METHODS, "")),
+    fiducials=_bool(True, "The trial masks' three registration marks (unscatter.masks.fiducial_marks) on every "
+                    "benchmark mask of each design that leaves the field's corners empty, so that each print's pose "
+                    "rests on them whatever the design (a star that maps onto itself turned, a dim print); the scoring "
+                    "leaves the marks' corners out. false - the masks as the paper prints them."),
     batch=Setting("string", None, "With source 'batches': the batch of the benchmark's print job once printed and "
                   "imaged (a folder under data/prints/, or a path); it is scored, never used for calibration. null - the "
                   "print job is written and the benchmark is scored on the calibrated simulator only. With source 'lab' "

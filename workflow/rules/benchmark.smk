@@ -12,7 +12,8 @@ rule benchmark_job:
     params:
         methods=list(benchmark_masks()),
         doses=config["benchmark"]["doses"],
-        code=code_version("benchmark", "io"),
+        fiducials=config["benchmark"]["fiducials"],
+        code=code_version("benchmark", "io", "masks"),
     localrule: True
     script:
         "../scripts/benchmark.py"
@@ -56,7 +57,7 @@ rule benchmark_score:
     log:
         f"{RESULTS}/logs/benchmark/score.log",
     params:
-        code=code_version("benchmark", "metrics", "io"),
+        code=code_version("benchmark", "metrics", "io", "masks"),
     threads: 1
     resources:
         mem_mb=4000,

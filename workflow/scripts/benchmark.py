@@ -23,7 +23,7 @@ def main(snakemake):
         p = snakemake.params
         masks = dict(zip(p.methods, snakemake.input.masks))
         if rule == "benchmark_job":
-            rows = bm.write_print_job(masks, designs, snakemake.output[0], doses=tuple(p.doses))
+            rows = bm.write_print_job(masks, designs, snakemake.output[0], doses=tuple(p.doses), fiducials=p.fiducials)
             log.info("print job of %d masks -> %s", len(rows), snakemake.output[0])
             return
         from unscatter.model import load_params
