@@ -171,9 +171,11 @@ def benchmark_masks(designs, masks_by_method: dict, doses=IDENTICAL_DOSES, pv_ba
     for name, d in designs.items():
         entries = [(m, 1.0, by_method[m][name]) for m in by_method]
         entries += [(IDENTICAL, dose, identical_mask(d, dose)) for dose in doses]
-        if fiducials:
-            clear = fiducial_marks(d.shape[0])[1] if d.shape[0] == d.shape[1] else None
-            if clear is not None and not any(mask[clear].any() for _, _, mask in entries):
+        if fiducials and d.shape[0] != d.shape[1]:
+            log.warning("%s: printed without registration marks: they are laid out for a square field", name)
+        elif fiducials:
+            clear = fiducial_marks(d.shape[0])[1]
+            if not any(mask[clear].any() for _, _, mask in entries):
                 entries = [(method, dose, with_fiducials(mask)) for method, dose, mask in entries]
             else:
                 log.warning("%s: printed without registration marks: its masks reach into the marks' corners", name)
