@@ -11,6 +11,7 @@ from unscatter.benchmark import (
     COLUMNS,
     IDENTICAL,
     IDENTICAL_DOSES,
+    MARK_ROOM_GREY,
     benchmark_masks,
     identical_mask,
     parse_print_id,
@@ -147,6 +148,14 @@ def test_registration_marks_go_only_where_a_design_leaves_room_for_them(setup, t
     assert all(carries_marks(m) == (pid.startswith("cross__")) for pid, m in masks.items())
     assert all(np.array_equal(m, identical_mask(corner, parse_print_id(pid)["mask_dose"]))
                for pid, m in masks.items() if pid.startswith("corner__"))
+    # a method's faint grey over the whole field (a network's mask) leaves room for them; an assist feature does not
+    one = tmp_path / "one"
+    write_png(one / "cross.png", read_mask(designs / "cross.png"))
+    for grey, marked in ((MARK_ROOM_GREY, True), (MARK_ROOM_GREY + 1, False)):
+        method = tmp_path / f"nn_{grey}"
+        write_png(method / "cross.png", np.maximum(read_mask(designs / "cross.png"), grey).astype(np.uint8))
+        masks, _ = benchmark_masks(one, {"nn": method}, fiducials=True)
+        assert all(carries_marks(m) == marked for m in masks.values()), grey
 
 
 def test_masks_must_match_the_designs(setup, tmp_path):
