@@ -417,7 +417,8 @@ BENCHMARK = Stage(
                     "compares the two models. ilt needs no training; nn and nn+ilt train a second pair of networks. "
                     "Empty - no comparison.", unique=True, items=_choice(None, METHODS, "")),
     fiducials=_bool(True, "The trial masks' three registration marks (unscatter.masks.fiducial_marks) on every "
-                    "benchmark mask of each design that leaves the field's corners empty, so that each print's pose "
+                    "benchmark mask of each design whose masks leave the field's corners dark (5 % grey at most, which the "
+                    "marks replace: benchmark.MARK_ROOM_GREY), so that each print's pose "
                     "rests on them whatever the design (a star that maps onto itself turned, a dim print); the scoring "
                     "leaves the marks' corners out. false - the masks as the paper prints them."),
     batch=Setting("string", None, "With source 'batches': the batch of the benchmark's print job once printed and "
