@@ -221,19 +221,30 @@ def exposure_token(exposure: float) -> str:
     return f"x{int(round(100 * exposure)):03d}"
 
 
-def read_registered(prints_dir) -> dict:
+def registered_masks(prints_dir, rows: list[dict] | None = None) -> dict:
+    """id -> the mask of each print of a registration output whose qc.tsv names one that
+    is there (``rows``: qc.tsv's rows, read where not given)."""
+    prints_dir = Path(prints_dir)
+    rows = read_tsv(prints_dir / "qc.tsv") if rows is None else rows
+    paths = {r["id"]: (prints_dir / r["mask"]).resolve() for r in rows if r.get("mask")}
+    return {k: read_mask(p) for k, p in paths.items() if p.is_file()}
+
+
+def read_registered(prints_dir, masks: dict | None = None) -> dict:
     """id -> bool print of a registration output (None where registration failed).
 
-    A print whose mask (qc.tsv's ``mask``) carries the registration marks is returned
-    without them: the marks' cleared band, empty in its design, is set to no print."""
+    A print whose mask (qc.tsv's ``mask``; ``masks``: ``registered_masks``, read where not
+    given) carries the registration marks is returned without them: the marks' cleared
+    band, empty in its design, is set to no print."""
     prints_dir = Path(prints_dir)
     qc = prints_dir / "qc.tsv"
     if qc.is_file():
+        rows = read_tsv(qc)
+        masks = registered_masks(prints_dir, rows) if masks is None else masks
         out = {}
-        for r in read_tsv(qc):
+        for r in rows:
             p = read_print(prints_dir / f"{r['id']}.png") if r["status"] in ("ok", "empty") else None
-            mask = (prints_dir / r["mask"]).resolve() if p is not None and r.get("mask") else None
-            if mask is not None and mask.is_file() and carries_marks(read_mask(mask)):
+            if p is not None and r["id"] in masks and carries_marks(masks[r["id"]]):
                 p = p.copy()
                 p[fiducial_marks(p.shape[0])[1]] = False
             out[r["id"]] = p
@@ -471,16 +482,12 @@ def score_measured(registered_prints_dir, designs_dir, out_dir, pixel_size_um: f
     reg = Path(registered_prints_dir)
     if pixel_size_um is None:
         pixel_size_um = read_batch_meta(reg).pixel_size_um
-    prints = read_registered(reg)
-    masks = {}
-    if (reg / "qc.tsv").is_file():
-        for r in read_tsv(reg / "qc.tsv"):
-            path = (reg / r.get("mask", "")).resolve() if r.get("mask") else None
-            if path is not None and path.is_file():
-                masks[r["id"]] = read_mask(path)
+    qc = read_tsv(reg / "qc.tsv") if (reg / "qc.tsv").is_file() else None
+    masks = registered_masks(reg, qc) if qc is not None else {}
+    prints = read_registered(reg, masks)
     rows = score_prints(prints, designs_dir, pixel_size_um)
-    if (reg / "qc.tsv").is_file():  # a print that failed registration QC is not a print that failed
-        failed = {r["id"] for r in read_tsv(reg / "qc.tsv") if r["status"] == "failed"}
+    if qc is not None:  # a print that failed registration QC is not a print that failed
+        failed = {r["id"] for r in qc if r["status"] == "failed"}
         for row in rows:
             if row["status"] == "no print" and print_id(row["design"], row["method"], row["mask_dose"]) in failed:
                 row["status"] = "registration failed"

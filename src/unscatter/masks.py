@@ -9,6 +9,7 @@ lines, partial prints) are the prints registration is benchmarked on. Masks are 
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +33,13 @@ FIDUCIAL_INSET_PX = 28  # from the field's edge to the mark
 FIDUCIAL_GUARD_PX = 20  # cleared around the mark (about twice a strong scatter's sigma)
 
 
+@functools.lru_cache(maxsize=8)
 def fiducial_marks(size: int = 512) -> tuple[np.ndarray, np.ndarray]:
     """(marks, cleared): boolean masks of the three registration marks (top left, top
     right, bottom left: no turn of the field maps them onto themselves) and of the area
     around them that no other feature may use; on a field of ``size`` px, the sizes
-    above scaled by size / 512."""
+    above scaled by size / 512. Read-only, and kept for the last few sizes: a benchmark
+    job asks for them for every mask."""
     marks = np.zeros((size, size), bool)
     clear = np.zeros((size, size), bool)
     k = size / 512  # the sizes above are for the paper's 512 px field
@@ -44,6 +47,8 @@ def fiducial_marks(size: int = 512) -> tuple[np.ndarray, np.ndarray]:
     for r, c in ((a, a), (a, size - a - w), (size - a - w, a)):
         marks[r : r + w, c : c + w] = True
         clear[max(0, r - g) : r + w + g, max(0, c - g) : c + w + g] = True
+    marks.setflags(write=False)
+    clear.setflags(write=False)
     return marks, clear
 
 
