@@ -11,7 +11,8 @@ Prints
    so this is the best case);
 3. a sweep over ILT schedules (steps at 1/4, 1/2 and full resolution): time vs quality;
 4. with --lab, the same benchmark printed by the virtual lab and measured through
-   registration (the lab has effects Eq. 1 lacks: the honest number).
+   registration (the lab has effects Eq. 1 lacks: the honest number), the masks carrying
+   the registration marks where their designs leave room, as the print job has them.
 
 Without --params it uses a plausible printer (sigma 5 px, T 0.5, a small field tilt).
 Without --train-dir it trains a seconds-long 'ci' network: enough to time nn+ilt, not
@@ -153,7 +154,8 @@ def main():
     # 4. the virtual lab ---------------------------------------------------------------
     if a.lab:
         t = time.perf_counter()
-        res = run_benchmark(ddir, masks, out / "lab", px, virtual_lab_printer(tmp / "lab", seed=7))
+        res = run_benchmark(ddir, masks, out / "lab", px, virtual_lab_printer(tmp / "lab", seed=7),
+                            fiducials=True)
         print(f"\n4. printed by the virtual lab, measured through registration ({time.perf_counter() - t:.0f} s)")
         _table(res, designs, tiny)
     print(f"\noutputs: {out}")

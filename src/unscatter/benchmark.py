@@ -386,15 +386,19 @@ def printer_pixel_size(params, source) -> float:
 
 
 def run_benchmark(designs_dir, masks_by_method: dict, out_dir, pixel_size_um: float, printer: Printer,
-                  doses=IDENTICAL_DOSES, pv_band: bool = True, figures: bool = True) -> list[dict]:
+                  doses=IDENTICAL_DOSES, pv_band: bool = True, figures: bool = True, fiducials: bool = False) -> list[dict]:
     """Print every benchmark mask with ``printer``, score, write metrics.tsv and figures.
 
     ``masks_by_method``: method -> folder of <design>.png (or dict design -> uint8 mask).
     ``printer(masks, exposures) -> prints``: e.g. ``simulator_printer(params)`` or
     ``virtual_lab_printer(work_dir)``. ``out_dir``: a new folder or an earlier output of this function.
+    ``fiducials``: the registration marks on the masks where their designs leave room
+    (``benchmark_masks``), as the print job has them: for a printer whose prints are
+    registered (``read_registered`` leaves the marks out), not the simulator, whose prints
+    would be scored with them.
     """
     designs = _designs(designs_dir)
-    masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band)
+    masks, exposures = benchmark_masks(designs, masks_by_method, doses, pv_band, fiducials)
     with output_dir(out_dir, command="benchmark simulate", inputs=[designs_dir, *masks_by_method.values()]) as tmp:
         prints = printer(masks, exposures)
         rows = score_prints(prints, designs, pixel_size_um)
