@@ -16,6 +16,7 @@ from unscatter.benchmark import (
     identical_mask,
     parse_print_id,
     print_id,
+    read_registered,
     run_benchmark,
     score_measured,
     score_prints,
@@ -260,6 +261,21 @@ def test_masks_are_compared_on_the_designs_that_all_of_them_printed(setup, tmp_p
 # ------------------------------------------------------------------ a measured batch
 
 
+def score_key(r: dict) -> tuple:
+    return r["design"], r["method"], r["mask_dose"]
+
+
+def assert_scored_alike(marked: list, plain: list):
+    """The scores of prints of marked masks (their marks left out) against those of the
+    unmarked masks. The marks' scattered light reaches a design's print only at its
+    faintest (one pixel of the star at 50 % grey here), hence the tolerances."""
+    a = {score_key(r): r for r in plain}
+    tol = dict(iou=1e-4, pixel_error=1e-4, epe_um=0.01, pv_band_um=0.01, solid_fraction=1e-4)
+    for r in marked:
+        for k, a_tol in tol.items():
+            assert r[k] == pytest.approx(a[score_key(r)][k], abs=a_tol), (score_key(r), k)
+
+
 def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
     """A registration-like folder of the same prints scores the same as run_benchmark."""
     root, params, designs = setup
@@ -276,14 +292,7 @@ def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
     write_tsv(reg / "qc.tsv", qc)
     write_yaml(reg / "batch.yaml", dict(pixel_size_um=PX_UM, exposure_s=20, max_intensity_mw_cm2=20.8, material="test"))
     measured = score_measured(reg, designs, tmp_path / "scored")
-    key = lambda r: (r["design"], r["method"], r["mask_dose"])  # noqa: E731
-    a = {key(r): r for r in rows}
-    # the job's masks carry the registration marks, which print; the scores leave them out. The marks' scattered
-    # light reaches a design's print only at its faintest (one pixel of the star at 50 % grey here)
-    tol = dict(iou=1e-4, pixel_error=1e-4, epe_um=0.01, pv_band_um=0.01, solid_fraction=1e-4)
-    for r in measured:
-        for k, a_tol in tol.items():
-            assert r[k] == pytest.approx(a[key(r)][k], abs=a_tol), (key(r), k)
+    assert_scored_alike(measured, rows)
     marks = fiducial_marks(512)[0]
     assert read_mask(reg / f"{print_id('cross', 'ilt')}.png")[marks].mean() > 0.9
     assert (tmp_path / "scored" / "fig5_masks.png").is_file()
@@ -291,9 +300,34 @@ def test_score_measured_equals_the_printer_path(setup, simulated, tmp_path):
     failed = print_id("star", "ilt")
     qc = [dict(r, status="failed") if r["id"] == failed else r for r in qc]
     write_tsv(reg / "qc.tsv", qc)
-    again = {key(r): r for r in score_measured(reg, designs, tmp_path / "scored2", figures=False)}
+    again = {score_key(r): r for r in score_measured(reg, designs, tmp_path / "scored2", figures=False)}
     assert again[("star", "ilt", 1.0)]["status"] == "registration failed" and math.isnan(again[("star", "ilt", 1.0)]["iou"])
     assert again[("cross", "ilt", 1.0)]["status"] == "ok"
+
+
+def test_run_benchmark_hands_a_registered_printer_the_marked_masks(setup, simulated, tmp_path):
+    """With ``fiducials`` the printer gets the print job's masks, marks and all; prints
+    that come back as a registration output is read (``read_registered``) score as the
+    unmarked masks' do."""
+    root, params, designs = setup
+    _, rows = simulated
+    seen = {}
+
+    def printer(masks, exposures):  # the simulator, its prints read back from a registration-like folder
+        reg, qc = tmp_path / "reg", []
+        for pid, m in masks.items():
+            seen[pid] = m
+            write_png(tmp_path / "masks" / f"{pid}.png", m)
+            write_png(reg / f"{pid}.png", simulate(params.with_values(T=params.values["T"] / exposures[pid]), m))
+            qc.append(dict(id=pid, status="ok", mask=f"../masks/{pid}.png"))
+        write_tsv(reg / "qc.tsv", qc)
+        return read_registered(reg)
+
+    marked = run_benchmark(designs, {"ilt": root / "ilt"}, tmp_path / "out", PX_UM, printer, figures=False, fiducials=True)
+    plain, _ = benchmark_masks(designs, {"ilt": root / "ilt"})
+    assert set(seen) == set(plain) and all(carries_marks(m) and not carries_marks(plain[k]) for k, m in seen.items())
+    assert len(marked) == len(rows)
+    assert_scored_alike(marked, rows)
 
 
 # ----------------------------------------------------------------- the virtual lab
