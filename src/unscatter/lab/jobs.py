@@ -57,6 +57,8 @@ def virtual_lab_printer(work_dir, lab_config=None, seed=None, progress: bool = F
             if parse_print_id(pid)["exposure"] != exposures[pid]:
                 raise ValueError(f"{pid}: the id says exposure {parse_print_id(pid)['exposure']}, asked for {exposures[pid]}")
             write_png(job / f"{pid}.png", m)
-        return read_registered(print_on_virtual_lab(job, work_dir, lab_config=lab_config, seed=seed, progress=progress))
+        # the masks in hand, not read back from the job: read_registered leaves their marks out
+        return read_registered(print_on_virtual_lab(job, work_dir, lab_config=lab_config, seed=seed, progress=progress),
+                               masks)
 
     return printer
