@@ -443,18 +443,25 @@ def test_a_stained_batch_fits_each_prints_brightness_slopes_with_its_pose(tmp_pa
 
 def test_a_grey_ramp_whose_pose_rests_on_the_kernels_shape_is_not_ok(tmp_path):
     """Lab 1 of the registration benchmark's seed 105045948 (a scatter of 22.8 um with an
-    exponential tail of 32 % at 48 um, which the batch's template fits as 3 % at 39 px): a
-    block under a grey ramp printed where the dose is high, its cut where the dose places
-    it. Its pose along the ramp rests on the bright end's edge, whose place the kernel's
-    shape sets; it was `ok` 4.66 px off along the ramp with a size spread of 0.89 px. The
-    fit moves its pose by over 1.5 px when the kernel's tail changes
-    (``pose.kernel_spread``), so it fails on the kernel's shape, and no print of the lab
-    is silently wrong."""
+    exponential tail of 32 % at 48 um): a block under a grey ramp printed where the dose is
+    high, its cut where the dose places it. Its pose along the ramp rests on the bright
+    end's edge, whose place the kernel's shape sets. With a template that fitted the tail
+    as 3 % at 39 px it was `ok` 4.66 px off along the ramp with a size spread of 0.89 px;
+    the fit moves its pose by over 1.5 px when the kernel's tail changes
+    (``pose.kernel_spread``), and it failed on the kernel's shape. Since step 5a's fit
+    starts a second time from a tail (``Settings.template_tail_restart``, 2026-12-06) the
+    template holds the lab's tail (0.31 at 23 px), the kernel is off by 0.03 shares, and
+    the print is `ok` 0.58 px off. Either is right; `ok` off the truth, or a template
+    without the tail that passes it, is not, and no print of the lab is silently wrong."""
     bench = _bench()
     _, rows = bench.run_lab(1, 105045948, 32, tmp_path)
     row = next(r for r in rows if r["id"] == "partial_011")
-    assert row["status"] == "failed" and "shape of the scatter kernel" in row["reason"], row
-    assert row["model_sd"] > 1.5 and row["size_sd"] < 1.5, row
+    assert row["status"] in ("ok", "failed"), row
+    if row["status"] == "failed":
+        assert "shape of the scatter kernel" in row["reason"] and row["model_sd"] > 1.5, row
+    else:
+        tail = read_yaml(tmp_path / "lab_01" / "reg" / "registration.yaml")["print_template"]["tail"]
+        assert row["rms_px"] <= 1.0 and row["model_sd"] < 0.5 and tail >= 0.2, (row, tail)
     assert not [(r["id"], r["rms_px"]) for r in rows if r["silently_wrong"]]
 
 
