@@ -19,7 +19,7 @@ from ..masks import carries_marks, fiducial_marks
 from ..io import InputError, open_batch, output_dir, read_mask, write_png, write_rgb, write_tsv, write_yaml
 from .flatfield import correct_image, dense_level, reference_level, stain_field, stain_ratio
 from .priors import rotation_range, scale_prior, scale_range
-from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
+from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, TAIL, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, contradicted, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
                    merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
@@ -1088,7 +1088,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
             if tail_restart is None:
                 return x, fit
-            x2, fit2 = fit_template(quarter, pairs, np.r_[x[:8], tail_restart, x[10:]], max_evals, pool=pool.map)
+            start = x.copy()
+            start[TAIL:TAIL + 2] = tail_restart  # the tail's share and width
+            x2, fit2 = fit_template(quarter, pairs, start, max_evals, pool=pool.map)
             log.info("print template: started again with its tail at %s: mean NCC %.4f against %.4f", tail_restart,
                      fit2, fit)
             return (x2, fit2) if fit2 > fit else (x, fit)

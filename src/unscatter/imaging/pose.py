@@ -296,6 +296,7 @@ _BOUNDS = {"dose": (0.2, 5.0), "blur": (0.3, 20.0), "grad_x": (-0.5, 0.5), "grad
 BRIGHTNESS = ("bright_x", "bright_y")
 Q_NAMES = tuple(n for n, _, _ in NUISANCE) + BRIGHTNESS  # a Fit's q, in order (the slopes only where it has them)
 STAIN_SLOPE = PrintTemplate.NAMES.index("stain_slope")  # the template number that holds the stain's prior sd
+TAIL = PrintTemplate.NAMES.index("tail")  # the template's tail share, its width (tail_sigma) next
 
 
 def stain_slope(x) -> float:
