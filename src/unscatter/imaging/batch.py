@@ -107,6 +107,10 @@ class Settings:
     # then it is empty (uncured). 0: never
     template_min_prints: int = 3  # prints whose poses no rival contests, that the template is fitted on again (step
     template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
+    template_posed: bool = True  # the template's numbers fitted with each print's small pose moves (fit_template's
+    # ``posed``), not at poses held from the template before: held, a common scale error of the poses went into a lamp
+    # field that kept the next poses off (our lab's trial prints: median pose error 0.193 -> 0.073 px; README, "The
+    # template's field and the poses' scale")
     template_tail_restart: tuple | None = (0.3, 30.0)  # 5a's fit started again from its result with the scatter's
     # tail at this share and width (design px), the better of the two kept (None: one start). A fit that ends with
     # the haze in the tail's place is a poor optimum Powell does not leave; over three seeds' 24 labs the second start
@@ -1085,12 +1089,12 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         on and left out (registration.yaml). ``tail_restart``: (tail share, width) that
         each fit starts again from, with its other numbers where the first start ended."""
         def fit_from(pairs, x):
-            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map)
+            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, posed=s.template_posed)
             if tail_restart is None:
                 return x, fit
             start = x.copy()
             start[TAIL:TAIL + 2] = tail_restart  # the tail's share and width
-            x2, fit2 = fit_template(quarter, pairs, start, max_evals, pool=pool.map)
+            x2, fit2 = fit_template(quarter, pairs, start, max_evals, pool=pool.map, posed=s.template_posed)
             log.info("print template: started again with its tail at %s: mean NCC %.4f against %.4f", tail_restart,
                      fit2, fit)
             return (x2, fit2) if fit2 > fit else (x, fit)
@@ -1104,9 +1108,9 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             x, fit = fit_from(pairs, x)
         used = dict(fitted=[m for m, p in zip(ids_, pairs) if any(p is k for k in kept)],
                     left_out=[m for m, p in zip(ids_, pairs) if not any(p is k for k in kept)])
-        if hot_spot:
-            x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals, search_map=fmap)  # a lamp hot
-            # spot, where the prints show one
+        if hot_spot:  # a lamp hot spot, where the prints show one
+            x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals, search_map=fmap,
+                                  posed=s.template_posed)
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
         return x, fit, pairs, used
 
@@ -1230,7 +1234,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                 return replace(choices[mid], fit=refine(smooth[mid], choices[mid].fit.M, full, B, x, s.mode, iters=12, tol=0.01))
 
             bar.total += len(choices)
-            x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300, search_map=fmap)
+            x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300, search_map=fmap,
+                                   posed=s.template_posed)
             log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit2)
             template_prints = dict(used2, first=template_prints)
             settled = [mid for mid in todo if placed(choices[mid])]  # no rival close: refined, not chosen again

@@ -317,6 +317,7 @@ class _Centred:
     def __init__(self, img: np.ndarray):
         self.img, self.ok = img, np.isfinite(img)
         self.few = self.ok.sum() < 10  # ``ncc``'s 0
+        self.every = bool(self.ok.all())
         if not self.few:
             self.x = img[self.ok] - img[self.ok].mean()
             self.xx = (self.x * self.x).sum()
@@ -326,6 +327,27 @@ class _Centred:
             return 0.0
         y = b[self.ok]
         return _ncc_centred(self.x, self.xx, y) if np.isfinite(y).all() else ncc(self.img, b)
+
+    def ncc_posed(self, b: np.ndarray, X: np.ndarray, Y: np.ndarray) -> float:
+        """``ncc`` at the best small move of the image's pose: the square root of the share
+        of the image's variance that b and b's changes under a shift, turn and scale of the
+        design grid (``X``, ``Y``: its coordinates) explain together, to first order (the
+        sign of b's own coefficient)."""
+        if self.few:
+            return 0.0
+        gy, gx = np.gradient(b.astype(np.float32, copy=False))
+        C = np.empty((5, self.x.size), np.float32)  # the columns, centred in single precision (what cancels is gone
+        for row, v in enumerate((b, gx, gy, X * gx + Y * gy, X * gy - Y * gx)):  # before the products are summed)
+            C[row] = v.ravel() if self.every else v[self.ok]
+        if not np.isfinite(C).all():
+            return ncc(self.img, b)
+        C -= C.mean(1, keepdims=True)
+        G, c = (C @ C.T).astype(np.float64), (C @ self.x).astype(np.float64)
+        if not G[0, 0] > 0:
+            return 0.0
+        G[np.diag_indices(5)] += 1e-9 * np.trace(G)
+        beta = np.linalg.solve(G, c)
+        return float(np.sign(beta[0]) * np.sqrt(max(float(c @ beta), 0.0) / (self.xx + 1e-24)))
 
 
 ANISO_GAIN = 5e-5  # mean NCC an elliptical core must gain over a round one on prints it was not fitted to (fit_template)
@@ -373,7 +395,7 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, full: bool 
 
 
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None,
-                 anisotropy: bool = True) -> tuple[np.ndarray, float]:
+                 anisotropy: bool = True, posed: bool = False) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
 
     ``pairs``: (padded mask, image warped into padded design coordinates, the print's
@@ -397,10 +419,18 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     batches; 1.1e-4 to 4.1e-3 for real ones (ratios 1.5 to 1.7). The gain on the prints
     fitted is no guide: Powell's third of the budget leaves it noisy (-7e-4 on one real
     ellipse that gained 4.1e-3 on the others). With fewer than 6 prints the core is round.
+
+    ``posed``: each print's small moves of its pose (shift, turn, scale) are fitted with
+    the numbers, to first order (``_Centred.ncc_posed``), instead of its pose being held.
+    The poses the prints are fitted at come from an earlier template, and a lamp field's
+    slope moves each feature's edges alike, as a pose does: held poses that are off
+    (alike for a batch's prints: a common scale error of a template) are taken up by a
+    field that then keeps the next poses off. Returns the mean NCC at the held poses
+    either way.
     """
     x0 = np.r_[np.asarray(x0, float), PrintTemplate.START[len(x0):]]  # numbers recorded before the last were added
     free = [i for i in PrintTemplate.FREE if anisotropy or i < 17]  # the hot spot's numbers are held
-    x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool)
+    x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool, posed)
     if not anisotropy or not np.any(x[17:19] != 0):
         return x, fit
     round_ = x.copy()
@@ -409,8 +439,8 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     if len(rest) < 3:
         return round_, mean_ncc(tmpl, pairs, round_)
     round_free = [i for i in free if i < 17]
-    x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool)
-    x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool)
+    x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool, posed)
+    x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool, posed)
     gains = (f_e - f_r, mean_ncc(tmpl, rest, x_e) - mean_ncc(tmpl, rest, x_r))
     kept = gains[1] >= ANISO_GAIN
     log.info("print template: anisotropy %.3f, %.3f (ratio %.2f) gains mean NCC %.2g on the prints it was fitted to, "
@@ -418,9 +448,11 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     return (x, fit) if kept else (round_, mean_ncc(tmpl, pairs, round_))
 
 
-def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool) -> tuple[np.ndarray, float]:
+def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool,
+            posed: bool = False) -> tuple[np.ndarray, float]:
     """``fit_template``'s Powell search over the numbers ``free``, from ``x0``, the
-    numbers clipped to ``PrintTemplate.BOUNDS``."""
+    numbers clipped to ``PrintTemplate.BOUNDS`` (``posed``: as ``fit_template``'s; the
+    mean NCC returned is at the held poses)."""
     from scipy.optimize import minimize
 
     at = [PrintTemplate.FREE.index(i) for i in free]  # STEP and BOUNDS are in the order of FREE
@@ -441,6 +473,8 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
         if scatter:
             for i in idx:
                 B[i] = tmpl.exposure(pairs[i][0], x)
+        if posed:
+            return [seen[i].ncc_posed(tmpl.cure(B[i], x, pairs[i][2]), tmpl.X, tmpl.Y) for i in idx]
         return [seen[i].ncc(tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
 
     def cost(z):
@@ -451,6 +485,8 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
         return -float(np.mean([v for vs in (pool or map)(lambda idx: part(x, idx, scatter), halves) for v in vs]))
 
     res = minimize(cost, np.clip(x0[free], lo, hi) / step, method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
+    if posed:
+        return numbers(res.x), mean_ncc(tmpl, pairs, numbers(res.x))
     return numbers(res.x), -float(res.fun)
 
 
@@ -672,7 +708,7 @@ HOT_FOLD_STARTS = 3  # whose bump fitted best on all prints)
 
 
 def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None,
-                 max_evals: int = 600, folds: int = HOT_FOLDS, search_map=None) -> tuple[np.ndarray, float]:
+                 max_evals: int = 600, folds: int = HOT_FOLDS, search_map=None, posed: bool = False) -> tuple[np.ndarray, float]:
     """A lamp hot spot in the batch's field, where its prints show one.
 
     The bump's centre cannot be searched at fixed template numbers: the quadratic field
@@ -693,8 +729,8 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     benchmark it missed a hot spot of 0.20 that 4 folds find (held-out gain -0.0002 by
     halves, +0.0010 by folds); the lab's cut-off gratings and a partial print were then
     used 1.5 to 2.0 px off. A bump taken is fitted on all prints and the other template
-    numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held); it
-    is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``search_map`` (default
+    numbers refitted around it (``fit_template``, ``max_evals``, the core's shape held,
+    ``posed`` as there); it is kept if the whole fit beats ``fit`` by ``min_gain`` too. ``search_map`` (default
     ``pool``): a map over the centres of the search on all prints, then over the folds
     (each fold's centres in turn; every fit depends on its own prints and start only, so
     the numbers are those of one thread; registration forks processes for it,
@@ -730,7 +766,7 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
              np.round(theta[5:], 3), gain, held, folds, time.perf_counter() - t0)
     if not (held >= min_gain and held >= gain / 3):
         return x, fit
-    x1, f1 = fit_template(tmpl, pairs, every.numbers(theta), max_evals, pool, anisotropy=False)
+    x1, f1 = fit_template(tmpl, pairs, every.numbers(theta), max_evals, pool, anisotropy=False, posed=posed)
     log.info("lamp hot spot %s: mean NCC %.5f, without %.5f: %s", np.round(x1[13:], 3), f1, fit,
              "kept" if f1 - fit >= min_gain else "not kept")
     return (x1, f1) if f1 - fit >= min_gain else (x, fit)
