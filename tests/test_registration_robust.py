@@ -1219,6 +1219,39 @@ def test_a_stated_pixel_size_registers_one_feature_prints_and_a_stale_one_is_cau
     assert all(results["stale"][k][0] == "failed" for k in one), results["stale"]
 
 
+
+def test_a_print_held_to_its_stated_pixel_size_says_so_when_its_turn_is_still_undetermined(tmp_path):
+    """Two dots close together, in a batch whose images state their camera pixel size
+    (OME-XML, within 0.1 %): the stated size holds their scale, but their turn rests on
+    the dots' sizes more than on where they lie. The reason says that the scale was held
+    to the stated size, and within what, not that it rests on the size of a feature (the
+    reason given before for such prints, which read as if no stated size had been used)."""
+    import cv2
+
+    m = tmp_path / "masks"
+    for k, mask in patterns.trial_masks(4, seed=4).items():
+        write_png(m / f"{k}.png", mask)
+    for name, dots, r in (("pair", [(240, 250), (290, 262)], 14), ("pair2", [(300, 200), (345, 185)], 12)):
+        a = np.zeros((512, 512), np.uint8)
+        for c in dots:
+            cv2.circle(a, c, r, 255, -1)
+        write_png(m / f"{name}.png", a)
+    block = np.zeros((512, 512), np.uint8)
+    cv2.rectangle(block, (200, 220), (300, 290), 255, -1)
+    write_png(m / "block.png", block)
+    md = dict(where="ome", error=0.0003, tolerance=0.001, jitter=0.0002)
+    print_batch(m, tmp_path / "batch", overrides={"microscope": {"scale": [0.8, 1.25], "rotation_deg": 8.0,
+                                                               "pixel_size_metadata": md}}, seed=31, progress=False)
+    register_batch(tmp_path / "batch", tmp_path / "reg", skip_failed=True, progress=False)
+    errs = _pose_errors(tmp_path / "reg", tmp_path / "batch.truth")
+    pairs = {k: errs[k] for k in ("pair", "pair2")}
+    held = [k for k, (st, why, _) in pairs.items() if st == "failed" and "its scale held to its stated camera pixel size"
+            in why]
+    assert held, pairs
+    assert not any("its scale rests on the size of a feature" in why for _, why, _ in pairs.values()), pairs
+    assert all("px over the field), its turn or shift still rests on the sizes" in pairs[k][1] for k in held), pairs
+    assert not [k for k, (st, _, e) in errs.items() if st == "ok" and not e <= 1.5], errs
+
 def test_registration_marks_fix_the_pose_of_prints_that_cannot_fix_their_own(tmp_path):
     """One block, a Siemens star and a grey grating that does not cure (designed masks
     hold such features) fail or come out empty on a lab whose zoom differs by image; with
