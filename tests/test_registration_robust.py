@@ -1219,7 +1219,6 @@ def test_a_stated_pixel_size_registers_one_feature_prints_and_a_stale_one_is_cau
     assert all(results["stale"][k][0] == "failed" for k in one), results["stale"]
 
 
-
 def test_a_print_held_to_its_stated_pixel_size_says_so_when_its_turn_is_still_undetermined(tmp_path):
     """Two dots close together, in a batch whose images state their camera pixel size
     (OME-XML, within 0.1 %): the stated size holds their scale, but their turn rests on
@@ -1251,6 +1250,7 @@ def test_a_print_held_to_its_stated_pixel_size_says_so_when_its_turn_is_still_un
     assert not any("its scale rests on the size of a feature" in why for _, why, _ in pairs.values()), pairs
     assert all("px over the field), its turn or shift still rests on the sizes" in pairs[k][1] for k in held), pairs
     assert not [k for k, (st, _, e) in errs.items() if st == "ok" and not e <= 1.5], errs
+
 
 def test_registration_marks_fix_the_pose_of_prints_that_cannot_fix_their_own(tmp_path):
     """One block, a Siemens star and a grey grating that does not cure (designed masks
