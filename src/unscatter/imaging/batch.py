@@ -1846,18 +1846,15 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
             reasons.append(f"pose not determined by the print: {how}")
         if not ch.fit.size_sd <= s.max_size_sd:
             by = f"uncertain by {min(ch.fit.size_sd, 1e6):.2f} px (more than {s.max_size_sd})"
-            if mid in stated_held:  # its scale was held, not left to its features' size: the spread is the stated
-                # size's tolerance over the field and what its turn and shift rest on
-                sp = ch.fit.scale_prior
-                reasons.append(f"pose not determined by the print: its scale held to its stated camera pixel size"
-                               + (f" (known within {100 * sp[1]:.2f} %, {field_radius_px(design_px) * sp[1]:.2f} px over "
-                                  f"the field)" if sp is not None else "")
-                               + ", its turn or shift still rests on the sizes of its features more than on where they "
-                               f"lie (few, small or close together; a ring turns freely); {by}")
-            elif held_scale is not None:
-                reasons.append(f"pose not determined by the print: its scale held to the batch's one magnification, its "
-                               f"turn or shift still rests on the sizes of its features more than on where they lie (few, "
-                               f"small or close together; a ring turns freely); {by}")
+            if mid in stated_held or held_scale is not None:  # its scale held, not left to its features' size: the
+                # spread is what its turn and shift rest on (and a stated size's tolerance over the field)
+                sp = ch.fit.scale_prior if mid in stated_held else None
+                to = ("the batch's one magnification" if mid not in stated_held else "its stated camera pixel size"
+                      + (f" (known within {100 * sp[1]:.2f} %, {field_radius_px(design_px) * sp[1]:.2f} px over the "
+                         f"field)" if sp is not None else ""))
+                reasons.append(f"pose not determined by the print: its scale held to {to}, its turn or shift still rests "
+                               f"on the sizes of its features more than on where they lie (few, small or close together; "
+                               f"a ring turns freely); {by}")
             else:
                 reasons.append(f"pose not determined by the print: its scale rests on the size of a feature (one block, a "
                                f"grating printed as one) more than on where its features lie; "
