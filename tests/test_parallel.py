@@ -6,7 +6,7 @@ import os
 import numpy as np
 import pytest
 
-from unscatter.imaging.parallel import can_fork, forked_map
+from unscatter.imaging.parallel import ForkedParts, can_fork, forked_map
 
 needs_fork = pytest.mark.skipif(not can_fork(), reason="fork is registration's only on Linux")
 
@@ -79,6 +79,64 @@ def test_processes_that_cannot_start_leave_the_work_to_the_fallback(monkeypatch,
         assert parallel.forked_map(lambda i: 2 * i, range(4), 2) == [0, 2, 4, 6]
     assert "could not start" in caplog.text
 
+
+@needs_fork
+def test_each_part_stays_in_its_own_child_and_keeps_what_it_kept_across_calls():
+    """``ForkedParts``: what ``fn`` keeps of a part (a print's scattered dose) is kept in
+    the child that holds the part, call after call; results come back in part order."""
+    parent = os.getpid()
+    kept = {}
+
+    def fn(part, arg):
+        kept.setdefault(part, []).append(arg)  # in the child's copy of ``kept``
+        return part, sum(kept[part]), os.getpid()
+
+    with ForkedParts(fn, ["a", "b"], 2) as forked:
+        assert forked.conns
+        runs = [forked(k) for k in (1, 2, 3)]
+    assert [[(p, s) for p, s, _ in r] for r in runs] == [[("a", 1), ("b", 1)], [("a", 3), ("b", 3)], [("a", 6), ("b", 6)]]
+    pids = [[pid for _, _, pid in r] for r in runs]
+    assert all(pid != parent for r in pids for pid in r) and pids[0][0] != pids[0][1]
+    assert pids[0] == pids[1] == pids[2]  # each part in one process throughout
+    assert kept == {}  # nothing changed here
+
+
+@needs_fork
+def test_an_error_in_a_part_reaches_the_caller_and_the_children_go_on():
+    def fn(part, arg):
+        if part == 1 and arg == "bad":
+            raise ValueError(f"part {part} cannot take {arg}")
+        return (part, arg)
+
+    with ForkedParts(fn, [0, 1], 2) as forked:
+        with pytest.raises(ValueError, match="part 1 cannot take bad"):
+            forked("bad")
+        assert forked("good") == [(0, "good"), (1, "good")]
+
+
+@needs_fork
+def test_a_part_whose_child_dies_is_computed_here(caplog):
+    parent = os.getpid()
+
+    def fn(part, arg):
+        if os.getpid() != parent and arg == 2:
+            os._exit(1)  # as a child killed for memory
+        return 10 * part + arg
+
+    with caplog.at_level(logging.WARNING, logger="unscatter.imaging.parallel"):
+        with ForkedParts(fn, [1, 2], 2) as forked:
+            assert forked(1) == [11, 21]
+            assert forked(2) == [12, 22]
+            assert not forked.conns and forked(3) == [13, 23]
+    assert "worker processes stopped" in caplog.text
+
+
+def test_one_part_or_process_is_computed_here():
+    parent = os.getpid()
+    for parts, processes in (([5], 2), ([5, 6], 1)):
+        with ForkedParts(lambda part, arg: (part + arg, os.getpid()), parts, processes) as forked:
+            assert not forked.conns
+            assert forked(1) == [(p + 1, parent) for p in parts]
 
 
 @needs_fork

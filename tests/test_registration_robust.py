@@ -1521,6 +1521,33 @@ def test_the_templates_field_does_not_take_up_a_common_scale_error_of_the_poses(
     assert abs(radial[True]) < 0.03, radial
 
 
+def test_the_template_fit_in_forked_processes_gives_the_numbers_of_threads():
+    """``fit_template(processes=2)``: each half of the prints in a forked process that
+    lives through the search (``parallel.ForkedParts``) gives the numbers, to the last
+    digit, that the same halves on two threads give (registration.yaml of a lab of the
+    registration benchmark is byte for byte the same either way)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    from unscatter.imaging.template import PrintTemplate, fit_template
+
+    tmpl = PrintTemplate(256, 16, factor=4)
+    truth = np.array(PrintTemplate.START, float)
+    rng = np.random.default_rng(3)
+    n = tmpl.shape[0]
+    pairs = []
+    for m in list(patterns.trial_masks(8, seed=7, size=256).values())[:8]:
+        pm = tmpl.padded(m)
+        A = cv2.getRotationMatrix2D(((n - 1) / 2,) * 2, 0.0, 1.0 + rng.normal(0, 0.002))
+        img = cv2.warpAffine(tmpl(pm, truth).astype(np.float32), A, (n, n), flags=cv2.INTER_LINEAR)
+        pairs.append((pm, (3 * img + 0.5 + rng.normal(0, 0.02, img.shape)).astype(np.float32), 1.0))
+    with ThreadPoolExecutor(2) as ex:
+        threads = fit_template(tmpl, pairs, PrintTemplate.START, 120, pool=ex.map, posed=True)
+    forked = fit_template(tmpl, pairs, PrintTemplate.START, 120, posed=True, processes=2)
+    assert np.array_equal(threads[0], forked[0]) and threads[1] == forked[1], (threads, forked)
+
+
 def test_lamp_fields_that_fit_as_well_are_those_of_a_spot_the_prints_do_not_fix(hot_spot_prints):
     """``field_alternatives``: the field fitted again with every number free, then with the
     spot's width halved and doubled and held. Twelve prints of a 50 % spot rule both out

@@ -1090,12 +1090,14 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         on and left out (registration.yaml). ``tail_restart``: (tail share, width) that
         each fit starts again from, with its other numbers where the first start ended."""
         def fit_from(pairs, x):
-            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, posed=s.template_posed)
+            x, fit = fit_template(quarter, pairs, x, max_evals, pool=pool.map, posed=s.template_posed,
+                                  processes=s.threads)
             if tail_restart is None:
                 return x, fit
             start = x.copy()
             start[TAIL:TAIL + 2] = tail_restart  # the tail's share and width
-            x2, fit2 = fit_template(quarter, pairs, start, max_evals, pool=pool.map, posed=s.template_posed)
+            x2, fit2 = fit_template(quarter, pairs, start, max_evals, pool=pool.map, posed=s.template_posed,
+                                    processes=s.threads)
             log.info("print template: started again with its tail at %s: mean NCC %.4f against %.4f", tail_restart,
                      fit2, fit)
             return (x2, fit2) if fit2 > fit else (x, fit)
@@ -1111,7 +1113,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                     left_out=[m for m, p in zip(ids_, pairs) if not any(p is k for k in kept)])
         if hot_spot:  # a lamp hot spot, where the prints show one
             x, fit = fit_hot_spot(quarter, pairs, x, fit, s.hot_spot_gain, pool=pool.map, max_evals=max_evals, search_map=fmap,
-                                  posed=s.template_posed)
+                                  posed=s.template_posed, processes=s.threads)
         log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit)
         return x, fit, pairs, used
 
@@ -1236,7 +1238,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
 
             bar.total += len(choices)
             x, fit2 = fit_hot_spot(quarter, pairs2, x2, fit2, s.hot_spot_gain, pool=pool.map, max_evals=300, search_map=fmap,
-                                   posed=s.template_posed)
+                                   posed=s.template_posed, processes=s.threads)
             log.info("print template: %s, mean NCC %.4f", dict(zip(PrintTemplate.NAMES, np.round(x, 4))), fit2)
             template_prints = dict(used2, first=template_prints)
             settled = [mid for mid in todo if placed(choices[mid])]  # no rival close: refined, not chosen again
@@ -1622,7 +1624,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
                            scale_prior=f.scale_prior)
                 return pose_distance(f.M, g.M, grid, MARGIN)
 
-            for mid, moved in zip(field_cands, pool.map(moved_by, field_cands)):
+            for mid, moved in zip(field_cands, fmap(moved_by, field_cands)):  # in processes: it changes nothing here
                 if moved > field_moved.get(mid, (0.0,))[0]:
                     field_moved[mid] = (moved, spot_width, ncc_gain)
     field_moved_far = sorted(mid for mid, r in field_moved.items() if r[0] > s.edge_pull_px)  # QC fails these (``finish``)

@@ -37,6 +37,8 @@ import time
 import cv2
 import numpy as np
 
+from .parallel import ForkedParts
+
 log = logging.getLogger(__name__)
 
 
@@ -395,7 +397,7 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, full: bool 
 
 
 def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, pool=None,
-                 anisotropy: bool = True, posed: bool = False) -> tuple[np.ndarray, float]:
+                 anisotropy: bool = True, posed: bool = False, processes: int = 1) -> tuple[np.ndarray, float]:
     """The batch's template numbers: maximum mean NCC over prints (scipy's Powell).
 
     ``pairs``: (padded mask, image warped into padded design coordinates, the print's
@@ -430,7 +432,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     """
     x0 = np.r_[np.asarray(x0, float), PrintTemplate.START[len(x0):]]  # numbers recorded before the last were added
     free = [i for i in PrintTemplate.FREE if anisotropy or i < 17]  # the hot spot's numbers are held
-    x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool, posed)
+    x, fit = _powell(tmpl, pairs, x0, free, max_evals, pool, posed, processes)
     if not anisotropy or not np.any(x[17:19] != 0):
         return x, fit
     round_ = x.copy()
@@ -439,8 +441,8 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     if len(rest) < 3:
         return round_, mean_ncc(tmpl, pairs, round_)
     round_free = [i for i in free if i < 17]
-    x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool, posed)
-    x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool, posed)
+    x_e, f_e = _powell(tmpl, some, x, free, max_evals // 3, pool, posed, processes)
+    x_r, f_r = _powell(tmpl, some, round_, round_free, max_evals // 3, pool, posed, processes)
     gains = (f_e - f_r, mean_ncc(tmpl, rest, x_e) - mean_ncc(tmpl, rest, x_r))
     kept = gains[1] >= ANISO_GAIN
     log.info("print template: anisotropy %.3f, %.3f (ratio %.2f) gains mean NCC %.2g on the prints it was fitted to, "
@@ -449,7 +451,7 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
 
 
 def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool,
-            posed: bool = False) -> tuple[np.ndarray, float]:
+            posed: bool = False, processes: int = 1) -> tuple[np.ndarray, float]:
     """``fit_template``'s Powell search over the numbers ``free``, from ``x0``, the
     numbers clipped to ``PrintTemplate.BOUNDS`` (``posed``: as ``fit_template``'s; the
     mean NCC returned is at the held poses)."""
@@ -458,8 +460,8 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
     at = [PrintTemplate.FREE.index(i) for i in free]  # STEP and BOUNDS are in the order of FREE
     step = np.asarray(PrintTemplate.STEP)[at]
     lo, hi = np.asarray(PrintTemplate.BOUNDS, float)[at].T
-    halves = [list(range(len(pairs)))[i::2] for i in range(2)] if pool else [list(range(len(pairs)))]
-    kept, B = [None], [None] * len(pairs)
+    halves = [list(range(len(pairs)))[i::2] for i in range(2)] if pool or processes > 1 else [list(range(len(pairs)))]
+    keys, B = [None] * len(pairs), [None] * len(pairs)  # each print's scattered dose, and the numbers it is for
 
     def numbers(z):
         x = x0.copy()
@@ -469,22 +471,23 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
 
     seen = [_Centred(img) for _, img, _ in pairs]  # each image's part that ``ncc`` counts, once
 
-    def part(x, idx, scatter):  # the NCCs of prints idx (a task per print cost more in overhead than it saved)
-        if scatter:
-            for i in idx:
-                B[i] = tmpl.exposure(pairs[i][0], x)
+    def part(idx, x):  # the NCCs of prints idx (a task per print cost more in overhead than it saved)
+        key = x[list(PrintTemplate.SCATTER)]
+        for i in idx:
+            if keys[i] is None or not np.array_equal(key, keys[i]):
+                B[i], keys[i] = tmpl.exposure(pairs[i][0], x), key
         if posed:
             return [seen[i].ncc_posed(tmpl.cure(B[i], x, pairs[i][2]), tmpl.X, tmpl.Y) for i in idx]
         return [seen[i].ncc(tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
 
-    def cost(z):
-        x = numbers(z)
-        key = x[list(PrintTemplate.SCATTER)]
-        scatter = kept[0] is None or not np.array_equal(key, kept[0])
-        kept[0] = key
-        return -float(np.mean([v for vs in (pool or map)(lambda idx: part(x, idx, scatter), halves) for v in vs]))
+    with ForkedParts(part, halves, processes) as forked:
+        def cost(z):
+            x = numbers(z)
+            values = forked(x) if forked.conns else (pool or map)(lambda idx: part(idx, x), halves)
+            return -float(np.mean([v for vs in values for v in vs]))
 
-    res = minimize(cost, np.clip(x0[free], lo, hi) / step, method="Powell", options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
+        res = minimize(cost, np.clip(x0[free], lo, hi) / step, method="Powell",
+                       options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
     if posed:
         return numbers(res.x), mean_ncc(tmpl, pairs, numbers(res.x))
     return numbers(res.x), -float(res.fun)
@@ -708,7 +711,8 @@ HOT_FOLD_STARTS = 3  # whose bump fitted best on all prints)
 
 
 def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: float = 2e-4, pool=None,
-                 max_evals: int = 600, folds: int = HOT_FOLDS, search_map=None, posed: bool = False) -> tuple[np.ndarray, float]:
+                 max_evals: int = 600, folds: int = HOT_FOLDS, search_map=None, posed: bool = False,
+                 processes: int = 1) -> tuple[np.ndarray, float]:
     """A lamp hot spot in the batch's field, where its prints show one.
 
     The bump's centre cannot be searched at fixed template numbers: the quadratic field
@@ -766,7 +770,8 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
              np.round(theta[5:], 3), gain, held, folds, time.perf_counter() - t0)
     if not (held >= min_gain and held >= gain / 3):
         return x, fit
-    x1, f1 = fit_template(tmpl, pairs, every.numbers(theta), max_evals, pool, anisotropy=False, posed=posed)
+    x1, f1 = fit_template(tmpl, pairs, every.numbers(theta), max_evals, pool, anisotropy=False, posed=posed,
+                          processes=processes)
     log.info("lamp hot spot %s: mean NCC %.5f, without %.5f: %s", np.round(x1[13:], 3), f1, fit,
              "kept" if f1 - fit >= min_gain else "not kept")
     return (x1, f1) if f1 - fit >= min_gain else (x, fit)
