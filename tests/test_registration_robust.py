@@ -1521,6 +1521,19 @@ def test_the_templates_field_does_not_take_up_a_common_scale_error_of_the_poses(
     assert abs(radial[True]) < 0.03, radial
 
 
+def test_the_posed_nccs_gradient_is_numpys_to_the_last_digit():
+    """``template._gradient``: np.gradient's numbers along either axis of a float32 image
+    (central differences, one-sided at the borders), written in place."""
+    from unscatter.imaging.template import _gradient
+
+    f = np.random.default_rng(4).normal(0, 1, (37, 23)).astype(np.float32) ** 3
+    gy, gx = np.gradient(f)
+    out = np.empty((2, *f.shape), np.float32)
+    _gradient(f, out[0], 0)
+    _gradient(f, out[1], 1)
+    assert np.array_equal(out[0], gy) and np.array_equal(out[1], gx)
+
+
 def test_the_template_fit_in_forked_processes_gives_the_numbers_of_threads():
     """``fit_template(processes=2)``: each half of the prints in a forked process that
     lives through the search (``parallel.ForkedParts``) gives the numbers, to the last
