@@ -349,10 +349,7 @@ class _Centred:
         if self.few:
             return 0.0
         b = b.astype(np.float32, copy=False)
-        # the columns, centred in single precision (what cancels is gone before the products are summed); where
-        # every pixel counts, made in place (np.gradient's numbers: central differences, one-sided at the border)
-        C = np.empty((5, *b.shape) if self.every else (5, self.x.size), np.float32)
-        V = C if self.every else np.empty((5, *b.shape), np.float32)
+        V = np.empty((5, *b.shape), np.float32)  # b, its gradient, and its changes under a turn and a scale
         V[0] = b
         _gradient(b, V[2], 0)
         _gradient(b, V[1], 1)
@@ -360,7 +357,8 @@ class _Centred:
         V[3] += Y * V[2]
         np.multiply(X, V[2], out=V[4])
         V[4] -= Y * V[1]
-        C = C.reshape(5, -1) if self.every else V[:, self.ok]
+        # the columns, centred in single precision (what cancels is gone before the products are summed)
+        C = V.reshape(5, -1) if self.every else V[:, self.ok]
         if not np.isfinite(C).all():
             return ncc(self.img, b)
         C -= C.mean(1, keepdims=True)
@@ -443,6 +441,10 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
     fitted is no guide: Powell's third of the budget leaves it noisy (-7e-4 on one real
     ellipse that gained 4.1e-3 on the others). With fewer than 6 prints the core is round.
 
+    ``processes``: where 2 or more, each half of the prints is evaluated in a forked
+    process that lives through the fit (``parallel.ForkedParts``) instead of on ``pool``
+    (the same numbers; the registration's threads waited on Python's lock there).
+
     ``posed``: each print's small moves of its pose (shift, turn, scale) are fitted with
     the numbers, to first order (``_Centred.ncc_posed``), instead of its pose being held.
     The poses the prints are fitted at come from an earlier template, and a lamp field's
@@ -474,8 +476,8 @@ def fit_template(tmpl: PrintTemplate, pairs: list, x0, max_evals: int = 600, poo
 def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_evals: int, pool,
             posed: bool = False, processes: int = 1) -> tuple[np.ndarray, float]:
     """``fit_template``'s Powell search over the numbers ``free``, from ``x0``, the
-    numbers clipped to ``PrintTemplate.BOUNDS`` (``posed``: as ``fit_template``'s; the
-    mean NCC returned is at the held poses)."""
+    numbers clipped to ``PrintTemplate.BOUNDS`` (``posed``, ``processes``: as
+    ``fit_template``'s; the mean NCC returned is at the held poses)."""
     from scipy.optimize import minimize
 
     at = [PrintTemplate.FREE.index(i) for i in free]  # STEP and BOUNDS are in the order of FREE
@@ -759,8 +761,8 @@ def fit_hot_spot(tmpl: PrintTemplate, pairs: list, x, fit: float, min_gain: floa
     ``pool``): a map over the centres of the search on all prints, then over the folds
     (each fold's centres in turn; every fit depends on its own prints and start only, so
     the numbers are those of one thread; registration forks processes for it,
-    ``parallel.forked_map``); ``pool``: the map ``fit_template`` runs its halves of the
-    prints on. Returns the numbers (always with the hot spot's four; ``hot`` zero where
+    ``parallel.forked_map``); ``pool``, ``processes``: where ``fit_template`` runs its
+    halves of the prints. Returns the numbers (always with the hot spot's four; ``hot`` zero where
     there is none) and their fit.
     """
     x = np.asarray(x, float)
