@@ -147,12 +147,12 @@ class ForkedParts:
     kept there. ``fn`` may do in a child what ``forked_map``'s may (the module's doc).
 
     Where processes cannot start (not Linux, one part, a limit) or one stops, the parts
-    are computed here, in order, which ``fn`` must allow for: what it keeps of a part
-    it must be able to compute again here. Use as a context manager (the children stop
-    at its end)."""
+    are computed here by ``fallback`` (a map, as ``forked_map``'s; for instance a thread
+    pool's), which ``fn`` must allow for: what it keeps of a part it must be able to
+    compute again here. Use as a context manager (the children stop at its end)."""
 
-    def __init__(self, fn, parts, processes: int):
-        self.fn, self.parts, self.conns, self.procs = fn, list(parts), [], []
+    def __init__(self, fn, parts, processes: int, fallback=map):
+        self.fn, self.parts, self.fallback, self.conns, self.procs = fn, list(parts), fallback, [], []
         if min(int(processes), len(self.parts)) < 2 or not can_fork():
             return
         ctx = multiprocessing.get_context("fork")
@@ -184,7 +184,7 @@ class ForkedParts:
                     if not ok:
                         raise value
                 return [value for _, value in outs]
-        return [self.fn(part, arg) for part in self.parts]
+        return list(self.fallback(lambda part: self.fn(part, arg), self.parts))
 
     def close(self) -> None:
         for c in self.conns:

@@ -502,11 +502,9 @@ def _powell(tmpl: PrintTemplate, pairs: list, x0: np.ndarray, free: list, max_ev
             return [seen[i].ncc_posed(tmpl.cure(B[i], x, pairs[i][2]), tmpl.X, tmpl.Y) for i in idx]
         return [seen[i].ncc(tmpl.cure(B[i], x, pairs[i][2])) for i in idx]
 
-    with ForkedParts(part, halves, processes) as forked:
+    with ForkedParts(part, halves, processes, fallback=pool or map) as forked:
         def cost(z):
-            x = numbers(z)
-            values = forked(x) if forked.conns else (pool or map)(lambda idx: part(idx, x), halves)
-            return -float(np.mean([v for vs in values for v in vs]))
+            return -float(np.mean([v for vs in forked(numbers(z)) for v in vs]))
 
         res = minimize(cost, np.clip(x0[free], lo, hi) / step, method="Powell",
                        options=dict(maxfev=max_evals, xtol=1e-3, ftol=1e-5))
