@@ -1534,6 +1534,38 @@ def test_the_posed_nccs_gradient_is_numpys_to_the_last_digit():
     assert np.array_equal(out[0], gy) and np.array_equal(out[1], gx)
 
 
+def test_refines_jacobian_and_edge_basis_written_in_place_give_the_lists_numbers():
+    """``pose._jacobian`` (rows written into one array) and ``edge_shifted`` (its squares
+    taken once): the numbers, to the last digit, of the per-row arrays they replace, in
+    either mode; a row that differs in the last digit
+    would send refine's steps elsewhere."""
+    from unscatter.imaging.pose import _jacobian, edge_shifted
+
+    rng = np.random.default_rng(11)
+    shape = (29, 41)
+    T = (rng.normal(0, 1, shape) ** 3).astype(np.float32)
+    dq = [rng.normal(0, 1, shape).astype(np.float32) for _ in range(7)]
+    g = np.arange(64, dtype=np.float32) - np.float32(31.5)
+    Xg, Yg = np.meshgrid(g[3 : 3 + shape[1]], g[5 : 5 + shape[0]])
+    for mode in ("similarity", "affine"):
+        for gain in (0.7318, 1.9):
+            gy, gx = np.gradient(gain * T)
+            cols = [gx * Xg, gx * Yg, gy * Xg, gy * Yg, gx, gy] if mode == "affine" else [gx * Xg + gy * Yg, gy * Xg - gx * Yg, gx, gy]
+            cols += [-T, -np.ones_like(T)] + [-gain * d for d in dq]
+            want = np.stack([c.astype(np.float32) for c in cols])
+            J = np.full_like(want, np.nan)
+            _jacobian(J, gain, T, dq, Xg, Yg, mode)
+            assert np.array_equal(J, want), mode
+    edge = (0.4, -0.3, 0.25)
+    gy, gx = np.gradient(T)
+    gm = np.sqrt(gx * gx + gy * gy)
+    inv = 1.0 / np.maximum(gm, 1e-12 + 1e-6 * float(gm.max()))
+    basis = [gm / 2, (gx * gx - gy * gy) * inv / 2, 2 * gx * gy * inv / 2]
+    T_e, got = edge_shifted(T, edge, 2)
+    assert np.array_equal(T_e, T + 0.4 * basis[0] + -0.3 * basis[1] + 0.25 * basis[2])
+    assert all(np.array_equal(a, b) for a, b in zip(got, basis))
+
+
 def test_the_template_fit_in_forked_processes_gives_the_numbers_of_threads():
     """``fit_template(processes=2)``: each half of the prints in a forked process that
     lives through the search (``parallel.ForkedParts``) gives the numbers, to the last

@@ -47,7 +47,7 @@ import cv2
 import numpy as np
 from scipy import fft as sfft, ndimage
 
-from .template import PrintTemplate, reduction
+from .template import PrintTemplate, _gradient, reduction
 
 
 def similarity(theta_deg: float, scale: float, src_c, dst_c) -> np.ndarray:
@@ -455,9 +455,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         Ms1 = h3(np.hstack([A_s @ (np.eye(2) + D), (A_s @ (t - D @ cvec) + t_s)[:, None]]))
         return Ms1, gain0 + dg, offset0 + do, q0_ if hold_nuisance else np.clip(q0_ + dq_, lo, hi)
 
-    def cost(r, valid, q, Ms, sigma, stiff):  # the objective that the steps lower: Huber, priors, held scale
+    def cost(a, q, Ms, sigma, stiff):  # the objective that the steps lower (``a``: |residual| where valid, float64)
         k = 2.0 * sigma
-        a = np.abs(r[valid]).astype(np.float64)
         c_ = float(np.where(a <= k, a * a, 2.0 * k * a - k * k).sum()) / sigma**2 + float((((q - q0) / qs) ** 2).sum())
         if scale_prior is not None:
             c_ += stiff * (log_scale(Ms) - float(np.log(f)) - scale_prior[0]) ** 2
@@ -467,6 +466,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
     # step was taken from (the steps from it are judged at its sigma and stiffness); lam: the
     # damping, zero (Gauss-Newton) until a step fails
     last, lam, rejected, stiff, last_move, away = None, 0.0, 0, 0.0, float("inf"), 0
+    J = Jw = None  # the Jacobian, transposed (a row a parameter), and its rows weighted: written again each step
     for it in range(1, iters + 1):
         Iw = _warp(src, (Ms @ into)[:2], shape)
         valid = np.isfinite(Iw) if counted is None else np.isfinite(Iw) & counted
@@ -477,7 +477,9 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             gain, offset = (float(v) for v in np.linalg.lstsq(A, Iw[valid], rcond=None)[0])
         Iw = np.where(valid, Iw, offset + gain * T).astype(np.float32)
         res = Iw - gain * T - offset
-        if last is not None and cost(res, valid, q, Ms, last[1], last[2]) > (1.0 + RISE) * last[0]:
+        a = np.abs(res[valid])
+        a64 = None if hold_nuisance else a.astype(np.float64)  # for the objective, which hold_nuisance never judges
+        if last is not None and cost(a64, q, Ms, last[1], last[2]) > (1.0 + RISE) * last[0]:
             # the step raised the objective (Gauss-Newton overshot along a curved valley, as
             # dose against edge offset, or to a dose that cures nothing, after which the
             # priors alone would pull the numbers back): back to the last state, damped
@@ -492,21 +494,16 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             continue
         r, rejected = res, 0
         lam = 0.0 if lam < 1e-3 else lam / 3.0
-        sigma = float(1.4826 * np.median(np.abs(r[valid]))) + 1e-6
-        w = np.where(valid, np.minimum(1.0, 2.0 * sigma / (np.abs(r) + 1e-12)), 0.0).astype(np.float32)
-        gy, gx = np.gradient(gain * T)
-        if mode == "affine":
-            cols = [gx * Xg, gx * Yg, gy * Xg, gy * Yg, gx, gy]
-        else:
-            cols = [gx * Xg + gy * Yg, gy * Xg - gx * Yg, gx, gy]
-        npose = len(cols)
-        cols += [-T, -np.ones_like(T)] + [-gain * d for d in dq]
-        J = np.empty((len(cols), T.size), np.float32)  # the Jacobian, transposed: one row a parameter
-        for i, col in enumerate(cols):
-            J[i] = col.ravel()
+        sigma = float(1.4826 * np.median(a)) + 1e-6
+        w = np.where(valid, np.minimum(1.0, 2.0 * sigma / (np.abs(r) + 1e-12)), 0.0).astype(np.float32, copy=False)
+        npose = 6 if mode == "affine" else 4
+        if J is None:
+            J = np.empty((npose + 2 + len(dq), T.size), np.float32)
+            Jw = np.empty_like(J)
+        _jacobian(J.reshape(len(J), *shape), gain, T, dq, Xg, Yg, mode)
         norm = np.sqrt(np.einsum("ij,ij->i", J, J, dtype=np.float64)) + 1e-9
         J /= norm[:, None].astype(np.float32)
-        Jw = J * w.ravel()[None, :]
+        np.multiply(J, w.ravel()[None, :], out=Jw)
         H_data = (Jw @ J.T).astype(np.float64) / sigma**2
         rhs = -(Jw @ r.ravel()).astype(np.float64) / sigma**2
         if scale_prior is not None:  # held at the batch's (a penalty far stiffer than the data's own precision,
@@ -525,7 +522,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         H[np.diag_indices_from(H)] += 1e-9 * np.trace(H) / len(H)
         state = (Ms, gain, offset, q)
         if not hold_nuisance:  # the nuisance numbers are what overshoots: held, no step is judged
-            last = (cost(r, valid, q, Ms, sigma, stiff), sigma, stiff, state, (H, rhs, norm, npose))
+            last = (cost(a64, q, Ms, sigma, stiff), sigma, stiff, state, (H, rhs, norm, npose))
         dz, move = step(H, rhs, norm, npose, lam)
         if lam > 0:  # settled is judged by the undamped step
             move = step(H, rhs, norm, npose, 0.0)[1]
@@ -551,6 +548,33 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             sd = float(np.hypot(sd, _field_rms(np.outer(a, a) * scale_prior[1] ** 2, mode, corners) * f))
     M_full = (Ms @ S_inv)[:2]
     return Fit(M_full, float(gain), float(offset), q, sigma, sd, converged, it, scale_prior=held)
+
+
+def _jacobian(J: np.ndarray, gain: float, T: np.ndarray, dq: list, Xg: np.ndarray, Yg: np.ndarray, mode: str) -> None:
+    """``refine``'s Jacobian of the residual, a row (an image of the window) a parameter,
+    written into ``J``: the pose's from gain * grad T (affine: the four of the linear part,
+    then the shift; similarity: scale, turn, shift), then gain, offset and the nuisance
+    numbers'. The numbers of the lists of images it was built from before, to the last
+    digit, without a new array for every row at every step (the gain a Python float, as
+    refine's is: a float32 image times it stays float32)."""
+    gain = float(gain)
+    gT = gain * T
+    gx, gy = (J[4], J[5]) if mode == "affine" else (J[2], J[3])
+    _gradient(gT, gy, 0)
+    _gradient(gT, gx, 1)
+    if mode == "affine":
+        for row, (u, v) in zip(J[:4], ((gx, Xg), (gx, Yg), (gy, Xg), (gy, Yg))):
+            np.multiply(u, v, out=row)
+    else:
+        np.multiply(gx, Xg, out=J[0])
+        J[0] += gy * Yg
+        np.multiply(gy, Xg, out=J[1])
+        J[1] -= gx * Yg
+    k = 6 if mode == "affine" else 4
+    np.negative(T, out=J[k])
+    J[k + 1] = -1.0
+    for row, d in zip(J[k + 2 :], dq):
+        np.multiply(-gain, d, out=row)
 
 
 # refine: a step that raises the objective by more than this share is refused. The pose's
@@ -607,9 +631,14 @@ def edge_shifted(T: np.ndarray, edge, factor: int = 1):
     matched by a wrong scale.
     """
     gy, gx = np.gradient(T)
-    g = np.sqrt(gx * gx + gy * gy)
+    gxx, gyy = gx * gx, gy * gy
+    g = np.sqrt(gxx + gyy)
     inv = 1.0 / np.maximum(g, 1e-12 + 1e-6 * float(g.max()))
-    basis = [g / factor, (gx * gx - gy * gy) * inv / factor, 2 * gx * gy * inv / factor]
+    gxx -= gyy
+    gxx *= inv
+    gy *= 2 * gx  # 2 gx gy, as (2 gx) gy
+    gy *= inv
+    basis = [g / factor, gxx / factor, gy / factor]
     e0, c2, s2 = (float(v) for v in edge)
     return T + e0 * basis[0] + c2 * basis[1] + s2 * basis[2], basis
 

@@ -241,7 +241,7 @@ class PrintTemplate:
     def image(self, R: np.ndarray, x, blur: float) -> np.ndarray:
         """The microscope: a focus blur and a wide haze (out-of-focus light of a widefield
         image of a thick gel), a share ``haze`` of the light spread over ``haze_sigma``."""
-        R = R.astype(np.float32)
+        R = R.astype(np.float32, copy=False)
         return self.hazed(R, x, self.focus(R, blur))
 
     def hazed(self, R: np.ndarray, x, F: np.ndarray) -> np.ndarray:
