@@ -509,7 +509,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
         if scale_prior is not None:  # held at the batch's (a penalty far stiffer than the data's own precision,
             # which trusts the template's sizes); the pose's spread is then the spread at that scale (the
             # data's pull on the scale, which no longer balances, left out) and the batch's spread's
-            a = _log_scale_row(len(cols), mode) / norm
+            a = _log_scale_row(len(J), mode) / norm
             ls = log_scale(Ms) - float(np.log(f))
             stiff = 1e3 * float(np.trace(H_data)) / float(a @ a)
             H_data += stiff * np.outer(a, a)
