@@ -378,7 +378,7 @@ def offset_kind(over: dict) -> str:
 def offset_lines(labs: list[dict], rows: list[dict]) -> list[str]:
     """Failures and silent errors by how the lab states its camera offset: an offset the
     registration does not subtract makes polymer read brighter in a dimmer image, in
-    units of its background (README, "Camera offsets")."""
+    units of its background (docs/registration.md, "Camera offsets")."""
     return _by_kind("the camera offset the lab states", offset_kind, ("declared, tif16", "declared, png8", "undeclared"),
                     labs, rows)
 
@@ -386,7 +386,7 @@ def offset_lines(labs: list[dict], rows: list[dict]) -> list[str]:
 def tail_lines(labs: list[dict], rows: list[dict]) -> list[str]:
     """Failures, silent errors and the ok prints' pose error by the share of the lab's
     scattering kernel in its heavy tail: the print template's tail is the part of it
-    that a batch's prints pin down least (README, registration)."""
+    that a batch's prints pin down least (docs/registration.md)."""
     share = {lab["index"]: float(((lab["overrides"].get("printer", {}).get("kernel") or {}).get("heavy_tail") or {})
                                  .get("fraction", 0.0)) for lab in labs}
     parts = []

@@ -371,12 +371,12 @@ def test_prints_that_scatter_about_their_stated_pixel_sizes_are_held_to_them(tmp
     their median pose error 0.22 px (0.51 before), their largest scale error 0.12 %, and
     one is silently wrong: ``grating_025``, a fine grating printed as one block, 1.62 px
     off (its translation rests on how the template places two opposite sides; #10). Over
-    the six stained labs that the change moves, silently wrong 5 -> 4 (README, "A stain
+    the six stained labs that the change moves, silently wrong 5 -> 4 (docs/registration.md, "A stain
     is the batch's"). The test allows that print alone, and no further than 2.5 px: on
     the machine of 2026-12-04 (the code of 9e94a74 and after) it is 2.12 px off, with 21
     prints ok, their largest scale error 0.17 % and their median 0.045 %.
 
-    How many prints pass depends on the machine's arithmetic (README, "Results and the
+    How many prints pass depends on the machine's arithmetic (docs/registration.md, "Results and the
     machine's arithmetic"): at a01b39d, 15 ok with OpenBLAS's SkylakeX kernels (an
     AVX-512 machine's default), 17 with its Haswell kernels, 18 and 17 with the template's
     start moved by 1e-9 of itself (two draws); ``grating_025`` silently wrong (1.59 px) in
@@ -406,7 +406,7 @@ def test_a_stained_batch_fits_each_prints_brightness_slopes_with_its_pose(tmp_pa
     (``stain_slope_sd``), the largest error of an ok print was 1.08 px and their median
     0.30 px (0.52 before).
 
-    That held on the machine it was measured on, not on every machine (README, "Results
+    That held on the machine it was measured on, not on every machine (docs/registration.md, "Results
     and the machine's arithmetic"). The batch's template is fitted through choices (a
     lamp hot spot kept or not) that the last bits of a sum can tip, and the prints' poses
     move with it. Registered with OpenBLAS's SkylakeX kernels (an AVX-512 machine's

@@ -1782,7 +1782,7 @@ def test_the_evidence_clips_at_the_level_of_the_print_not_of_its_area():
 def test_a_batch_too_small_to_measure_its_size_error_says_so(tmp_path, trial_dir, caplog):
     """A batch measures how far its template's feature sizes are off on its prints whose
     features' places fix their pose; with fewer than ``size_min_prints`` of them it can
-    only assume it, and says so (README, "Small registration batches")."""
+    only assume it, and says so (docs/registration.md, "Small registration batches")."""
     from unscatter.imaging.batch import Settings
 
     masks = tmp_path / "masks"

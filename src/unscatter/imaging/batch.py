@@ -98,7 +98,7 @@ class Settings:
     edge_pull_px: float = 1.0  # ... and fails where that moves its pose further than this (design px, RMS over the field)
     field_alternatives: bool = True  # a print is refitted under each lamp field that the batch's placed prints fit
     # about as well as their best (template.field_alternatives), and fails where that moves its pose further
-    # than edge_pull_px (README, "The lamp's field that the template prints do not fix")
+    # than edge_pull_px (docs/registration.md, "The lamp's field that the template prints do not fix")
     faint_fraction: float = 1.0  # an image too faint to register whose brightest polymer reaches this share of the
     # threshold, times the peak its mask's features image at (imaged_peak), is failed, not empty
     faint_sigmas: float = 1.0  # ... that peak taken in an image this many sds of the batch's brightness dimmer (dimmest)
@@ -109,13 +109,13 @@ class Settings:
     template_refit_gain: float = 0.002  # 5a), and the mean NCC it must gain there for the poses to be chosen again
     template_posed: bool = True  # the template's numbers fitted with each print's small pose moves (fit_template's
     # ``posed``), not at poses held from the template before: held, a common scale error of the poses goes into a lamp
-    # field that keeps the next poses off (our lab's trial prints: median pose error 0.193 -> 0.073 px posed; README,
+    # field that keeps the next poses off (our lab's trial prints: median pose error 0.193 -> 0.073 px posed; docs/registration.md,
     # "The template's field and the poses' scale"). It costs 10 to 15 % of registration time; over 1024 random-lab
-    # prints it took silently wrong prints 9 -> 2 (README, "Its cost, measured, and a cheaper form that failed")
+    # prints it took silently wrong prints 9 -> 2 (docs/registration.md, "Its cost, measured, and a cheaper form that failed")
     template_tail_restart: tuple | None = (0.3, 30.0)  # 5a's fit started again from its result with the scatter's
     # tail at this share and width (design px), the better of the two kept (None: one start). A fit that ends with
     # the haze in the tail's place is a poor optimum Powell does not leave; over three seeds' 24 labs the second start
-    # took failed prints 287 -> 268 and silent errors 7 -> 6 (README, "A fifth fresh seed"). In every template fit
+    # took failed prints 287 -> 268 and silent errors 7 -> 6 (docs/registration.md, "A fifth fresh seed"). In every template fit
     # instead, one seed's silent errors went 2 -> 5
     stain_sigma_px: float = 16.0  # design px: the scale over which a print's uneven staining is measured (stain_field) ...
     stain_min_sd: float = 0.06  # ... and its spread across the print's interiors that divides it out (inf: never)
@@ -471,7 +471,7 @@ def batch_scale(fits: list, s: Settings) -> tuple[float, float] | None:
     were `ok` 1.7 to 3.2 px off. So one print as far off as no refocusing moves a scale is
     enough to say that the magnification was set per image: in the random labs of one
     objective the prints were at most 0.48 % off their median (0.09 to 0.48 % in five
-    labs), in those of a zoom at least 3.7 % (README, "One magnification by chance"). A
+    labs), in those of a zoom at least 3.7 % (docs/registration.md, "One magnification by chance"). A
     print whose template pulls its scale off by more than 0.8 % then costs the batch its
     one magnification: prints that needed it fail rather than pass at a wrong scale.
     """
@@ -1367,7 +1367,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     placed_scales = {mid: log_scale(choices[mid].fit.M) for mid in placed_ids}
     stated, stated_note, stale = stated_scales({mid: scale_prior(*scales[mid]) for mid in todo}, placed_scales, s)
     if len(placed) < s.size_min_prints:
-        # a small batch: its template's size error is assumed, not measured (README, "Small registration batches"):
+        # a small batch: its template's size error is assumed, not measured (docs/registration.md, "Small registration batches"):
         # the size spread of every print (size_spread) and the erosion of the faint test (5f) rest on size_sd,
         # which the batch cannot check
         log.warning("prints whose pose their features' places fix: %d of %d, fewer than the %d needed to measure how "
@@ -1434,7 +1434,7 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         was 1.5 times ``max_pose_sd`` (0.75 px): paper trial prints of checkerboards and
         rectangles whose free scale had slid 1 to 3 % along their blocks' size (pose
         spreads 0.83 to 1.35 px, 2.0 to 7.4 px off) stayed failed; held, they are 0.6 to
-        0.9 px off (README, "Held to a stated size though their free pose is loose"). It
+        0.9 px off (docs/registration.md, "Held to a stated size though their free pose is loose"). It
         counts in the pose's spread, so it lets a print pass only when it is tight enough
         (about 0.15 % for a print of 512 px)."""
         ch, T = choices[mid], spreads[mid][0]

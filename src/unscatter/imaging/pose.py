@@ -770,7 +770,7 @@ def size_spread(T: np.ndarray, mode: str, offset_sd=None, scale_sd: float | None
     moves far with a small change of dose. A pose that rests on such edges (where along
     their length lines lie) is known only that well: a lines print of seed 273897816's
     lab 4 was `ok` 1.91 px off along its lines. The reference is not the median edge:
-    that failed a print of our own lab's default run 0.29 px off (README).
+    that failed a print of our own lab's default run 0.29 px off (docs/registration.md).
 
     ``place_dose_sd``: each feature may also sit off its predicted place as a whole, by
     this times the median over its boundary of how far the dose moves its edges (a
@@ -979,7 +979,7 @@ def kernel_spread(move: float, error: dict) -> float:
     2.6 % small, were `ok`, most at a spread of 0.02 px or less. The price is that a paper
     trial print of grey cells, whose scale follows a change of tail (2.7 to 5.4 px for a
     share 0.3 higher) without being off, may fail where its batch's prints hold much of
-    the change (README, "The kernel's shape and a free scale", measured). A print's
+    the change (docs/registration.md, "The kernel's shape and a free scale", measured). A print's
     scale resting on its features' sizes is ``size_spread``'s, measured on the batch's
     sizes."""
     return float(move * error["tail"]) if np.isfinite(move) else float("inf")  # inf x a share of 0 is no number

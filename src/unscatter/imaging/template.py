@@ -392,7 +392,7 @@ def half_cure_level(x, smoothing_px: float = 0.0, dose: float = 1.0, full: bool 
 
     The blur is the template's (fitted on images smoothed by one image px) and the
     smoothing in quadrature, which counts that smoothing twice: about 0.2 px too wide at
-    a blur of 4 px, more at 1 px (the measurements in the README were taken so)."""
+    a blur of 4 px, more at 1 px (the measurements in docs/registration.md were taken so)."""
     from scipy.ndimage import gaussian_filter1d
     from scipy.special import ndtr
 
