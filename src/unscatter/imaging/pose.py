@@ -477,8 +477,8 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             gain, offset = (float(v) for v in np.linalg.lstsq(A, Iw[valid], rcond=None)[0])
         Iw = np.where(valid, Iw, offset + gain * T).astype(np.float32)
         res = Iw - gain * T - offset
-        a = np.abs(res[valid])
-        a64 = None if hold_nuisance else a.astype(np.float64)  # for the objective, which hold_nuisance never judges
+        absr = np.abs(res[valid])
+        a64 = None if hold_nuisance else absr.astype(np.float64)  # for the objective, which hold_nuisance never judges
         if last is not None and cost(a64, q, Ms, last[1], last[2]) > (1.0 + RISE) * last[0]:
             # the step raised the objective (Gauss-Newton overshot along a curved valley, as
             # dose against edge offset, or to a dose that cures nothing, after which the
@@ -494,7 +494,7 @@ def refine(img: np.ndarray, fit_or_M, tmpl, B: np.ndarray, x, mode: str = "simil
             continue
         r, rejected = res, 0
         lam = 0.0 if lam < 1e-3 else lam / 3.0
-        sigma = float(1.4826 * np.median(a)) + 1e-6
+        sigma = float(1.4826 * np.median(absr)) + 1e-6
         w = np.where(valid, np.minimum(1.0, 2.0 * sigma / (np.abs(r) + 1e-12)), 0.0).astype(np.float32, copy=False)
         npose = 6 if mode == "affine" else 4
         if J is None:
