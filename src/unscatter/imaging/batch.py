@@ -21,7 +21,7 @@ from .flatfield import correct_image, dense_level, reference_level, stain_field,
 from .priors import rotation_range, scale_prior, scale_range
 from .pose import (KERNEL_TAIL, KERNEL_WIDTH, STAIN_SLOPE, TAIL, Fit, coarse_candidates, dose_sensitivity, kernel_error, kernel_moves,
                    kernel_spread, feature_places, place_dose_spread, print_template, evidence, contradicted, h3, log_scale, pose_distance, pose_of, project_similarity, pose_moves, refine,
-                   merged_features, predicted_image, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
+                   merged_features, print_level, similarity, refine_ecc, self_similar_moves, size_spread, to_design,
                    edge_misfit, EDGE_SD, NUISANCE)
 from .parallel import forked_map
 from .template import (PrintTemplate, blurred_mask, field_alternatives, fit_hot_spot, fit_template, half_cure_level, mean_ncc, ncc,
@@ -924,6 +924,15 @@ def measurement_record(template: dict, rows: list[dict], level: float, meta=None
     return out
 
 
+def stain_divided(img: np.ndarray, fld: np.ndarray, M: np.ndarray, offset: float) -> np.ndarray:
+    """The image ``img`` with its polymer (above ``offset``) divided by a stain's field
+    ``fld``, which ``M`` maps onto the image (1 outside it)."""
+    H, W = img.shape
+    d = cv2.warpAffine(fld, M.astype(np.float64), (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                       borderValue=1.0)
+    return (offset + (img - offset) / d).astype(img.dtype)
+
+
 def warp_to_design(c: np.ndarray, M: np.ndarray, design_px: int) -> np.ndarray:
     return cv2.warpAffine(c, M.astype(np.float64), (design_px, design_px), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                           borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
@@ -1195,10 +1204,8 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
         for mid, fld, sd in fields:
             if sd >= least:
                 stains[mid] = sd
-                f, (H, W) = choices[mid].fit, smooth[mid].shape
-                in_image = cv2.warpAffine(fld, f.M.astype(np.float64), (W, H), flags=cv2.INTER_LINEAR,
-                                          borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
-                smooth[mid] = (f.offset + (smooth[mid] - f.offset) / in_image).astype(smooth[mid].dtype)
+                f = choices[mid].fit
+                smooth[mid] = stain_divided(smooth[mid], fld, f.M, f.offset)
         del ratios  # two grids a print, not needed past here
         if stains:
             log.info("uneven staining in %d prints (polymer brightness %.1f to %.1f %% across them): their images divided "
@@ -1639,12 +1646,6 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     def smooth_raw(mid):  # the image as ``smooth`` held it before 5a divided it
         return cv2.GaussianBlur(corr[mid].c, (0, 0), 1.0)
 
-    def stain_divided(mid, fld):  # the image divided by a stain ``fld`` on the design grid, at the print's pose
-        f, (H, W) = choices[mid].fit, smooth[mid].shape
-        d = cv2.warpAffine(fld, to_design(f.M, MARGIN).astype(np.float64), (W, H), flags=cv2.INTER_LINEAR,
-                           borderMode=cv2.BORDER_CONSTANT, borderValue=1.0)
-        return (f.offset + (smooth_raw(mid) - f.offset) / d).astype(smooth[mid].dtype)
-
     # 5d, after the lamp's fields: the stain. A print's image was divided by its stain as measured at its first
     # chosen pose (5a), and the print then fitted again to the divided image. A pose off by a few px leaves bands of
     # misfit along the print's edges that the stain's smooth field partly takes up, and the division then holds the
@@ -1654,12 +1655,13 @@ def _register(batch, batch_dir: Path, out_dir: Path, final_dir: Path, s: Setting
     restained, stain_moved = {}, {}  # id -> stain_divisor at the final pose; id -> how far it moves the pose (px)
     if s.stain_recheck and stains:
         def stain_move(mid):
-            f = choices[mid].fit
-            r = stain_divisor(full, exposure_of(mid), x, f, smooth_raw(mid), s.stain_sigma_px)
+            f, raw = choices[mid].fit, smooth_raw(mid)
+            r = stain_divisor(full, exposure_of(mid), x, f, raw, s.stain_sigma_px)
             if r is None:
                 return None, None
             a = refine(smooth[mid], f, full, exposure_of(mid), x, s.mode, iters=12, scale_prior=f.scale_prior)
-            b = refine(stain_divided(mid, r[0]), f, full, exposure_of(mid), x, s.mode, iters=12, scale_prior=f.scale_prior)
+            b = refine(stain_divided(raw, r[0], to_design(f.M, MARGIN), f.offset), f, full, exposure_of(mid), x, s.mode,
+                       iters=12, scale_prior=f.scale_prior)
             return r, pose_distance(a.M, b.M, grid, MARGIN)
 
         recheck = [mid for mid in todo if mid in stains and not fails_anyway(choices[mid], s) and mid not in posed_on_marks]
