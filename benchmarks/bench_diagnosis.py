@@ -357,7 +357,7 @@ def _write_batch(out: Path, masks: dict, prints: dict, px: float) -> Path:
 
 
 REFERENCE = "dense_ref"  # the benchmarks' dense reference print, at 4 times the exposure (the id of the runs the
-# README reports: the lab's own dense_reference option names it otherwise, and a print's noise follows its id)
+# docs report: the lab's own dense_reference option names it otherwise, and a print's noise follows its id)
 
 
 def print_lab_batch(masks_dir: Path, batch_dir: Path, overrides: dict, seed: int, size: int, dense_reference: bool) -> None:
@@ -747,7 +747,7 @@ def main():
                     help="random labs: the trial masks, the paper's random ones or designed ones (design.design_masks at "
                          "the prior, seed 0, the workflow's pool, draws and registration marks)")
     ap.add_argument("--criterion", choices=("d", "discrimination", "paired"), default="d",
-                    help="--trial designed: the design's criterion (design.design_masks; d, as the runs in the README "
+                    help="--trial designed: the design's criterion (design.design_masks; d, as the runs in docs/diagnosis.md "
                          "before 2026-11-30 had it: unscatter's own default is paired)")
     ap.add_argument("--noise", choices=("edge", "pixel"), default=None,
                     help="--trial designed: the design's model of the print noise (design.NOISE; default: its default)")

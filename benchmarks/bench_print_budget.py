@@ -412,7 +412,7 @@ def main(argv=None) -> None:
     ap.add_argument("--pool", type=int, default=160)
     ap.add_argument("--draws", type=int, default=3)
     ap.add_argument("--criterion", choices=("d", "discrimination", "paired"), default="d",
-                    help="the designed masks' criterion (design.design_masks; d, as the runs in the README before "
+                    help="the designed masks' criterion (design.design_masks; d, as the runs in docs/trial-masks.md before "
                          "2026-11-30 had it: unscatter's own default is paired)")
     ap.add_argument("--heldout", type=int, default=16)
     ap.add_argument("--full", action="store_true", help="the workflow's calibration (GA 48 x 30)")

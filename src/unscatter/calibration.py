@@ -286,14 +286,14 @@ def _calibrate(prints_dirs, out_dir, model: str, seed: int, s: dict) -> Params:
             f"calibration fitted them again through the measurement stage, the microscope's blur held at "
             f"{meas.blur_px:.3g} px ({switched['blur']}); sigma_px is now {values['sigma_px']:.3g}. "
             + ("" if stated else "Stating the microscope's blur (batch.yaml "
-               "microscope_blur_um, measured on beads) makes this surer. ") + "See README, 'A stated microscope blur'")
+               "microscope_blur_um, measured on beads) makes this surer. ") + "See docs/calibration.md, 'A stated microscope blur'")
     if resolution and not resolution["resolved"] and not switched:
         run_warnings.append(
             f"sigma_px = {values['sigma_px']:.3g} is no larger than the measurement's own blur "
             f"({resolution['measurement_blur_px']:.3g} design px: the microscope's blur as the registration's print "
             f"template measured it, with the registration's smoothing): these prints do not resolve the scattering, and the fit "
             f"takes the microscope's blur for it. Against the real cure such a model can predict worse than the mask "
-            f"itself; image the prints at a higher magnification (README, 'Scattering the microscope does not resolve')")
+            f"itself; image the prints at a higher magnification (docs/calibration.md, 'Scattering the microscope does not resolve')")
     for w in run_warnings:
         warnings.warn(w, stacklevel=2)
         log.warning(w)
@@ -362,7 +362,7 @@ def _resolution(values: dict, data: PrintSet, meas: Measurement | None) -> dict 
     batch.yaml states: the registered prints are blurred by more than the optics (the
     camera's pixels, the warps' interpolation), which the template's blur holds and a
     stated PSF does not (on the sharp random labs the stated blur was 0.3 to 0.8 of the
-    template's; README, 'A stated microscope blur'). None where nothing is recorded, the
+    template's; docs/calibration.md, 'A stated microscope blur'). None where nothing is recorded, the
     model has no sigma, or the fit went through the measurement stage; the caller asks
     only where sigma was fitted."""
     if meas is not None or "sigma_px" not in values:
@@ -397,13 +397,13 @@ def _against_mask(model: str, cv: dict, objective: str) -> list[str]:
     if not cv["beats_mask"]:
         return [f"{model} as calibrated predicts the held-out prints no better than the mask itself (printed where its grey "
                 f"level >= {ts}): {scores}. The model's form misses what shapes these prints: run the diagnosis, and do not "
-                f"compensate with this model (README, 'The mask itself as the baseline')"]
+                f"compensate with this model (docs/calibration.md, 'The mask itself as the baseline')"]
     if mb.get("iou_better_p", 1.0) < IOU_DISAGREE_P:
         return [f"{model} as calibrated beats the mask itself (printed where its grey level >= {ts}) by the objective "
                 f"but the mask scores better by held-out IoU (paired t-test over prints, p {mb['iou_better_p']:.2g}): "
                 f"{scores}. The objective and the score disagree: '{objective}' "
                 f"{'weighs each print by its area' if objective == 'mismatch' else 'does not rank as IoU does'}; "
-                f"see README, 'The mask itself as the baseline'"]
+                f"see docs/calibration.md, 'The mask itself as the baseline'"]
     return []
 
 

@@ -49,7 +49,7 @@ of the simulated print to the parameters.
   large. ``paired.tsv`` reports every effect's predicted t for the design and for random
   paper masks. The default (``trial_masks.criterion``) since 2026-11-30: through the
   registration it named more effects than ``d`` from the same labs at 8 and at 32 prints
-  (README, "Spreading the evidence over the prints"); ``criterion="d"`` is D-optimality alone.
+  (docs/trial-masks.md, "Spreading the evidence over the prints"); ``criterion="d"`` is D-optimality alone.
 
 D-optimality (and not A- or E-optimality) because it is invariant to re-scaling each
 parameter, minimises the volume of the parameters' joint confidence region, and its

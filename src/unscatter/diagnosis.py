@@ -151,7 +151,7 @@ DEFAULTS = dict(
     structure_gain=0.015,  # ... and a per-bin correction (predictive_gain; the position: field_gain) removes this
     # share of the held-out error (kernel_correction: or, for every diagnostic but the position, a correction linear in
     # the mask's grey and its means at the radii_um, kernel_gain: no-effect labs 0 of 17 flagged either way, outside
-    # labs 9 -> 11 of 17 on three fresh seeds; README, "A kernel-shaped correction in the structure test")
+    # labs 9 -> 11 of 17 on three fresh seeds; docs/diagnosis.md, "A kernel-shaped correction in the structure test")
     # (no-effect labs: 0 of 18 flagged at 1.5 % or at 3 %; outside effects that leave Eq. 1 0.01 or more below the
     # lab's floor: 8 of 9 flagged at 1.5 %, 6 of 9 at 3 %; bench_diagnosis, 4 seeds, with per-cell position offsets.
     # With field_gain, 3 fresh seeds: no-effect labs 0 of 14 flagged, outside labs 7 of 14)
@@ -965,7 +965,7 @@ def field_gain(geo: Geometry, prints: np.ndarray, sims: np.ndarray, margins: np.
     p 0.002) and gains 2.0 %; hot spots of 0.18, 0.13 (with oxygen inhibition) and 0.34
     (with a kernel that widens) gained 6.4, 2.2 and 21.9 % and gain 7.6, 4.0 and 23.5 %;
     on 33 labs with no effect the gain's median is -1.4 % (was -1.0 %), its largest 2.7 %
-    (2.6 %) at p 0.44, and the two over 1.5 % have p 0.078 and 0.44 (README, "A finer
+    (2.6 %) at p 0.44, and the two over 1.5 % have p 0.078 and 0.44 (docs/diagnosis.md, "A finer
     field"). 2.1 s for 32 prints of 512 x 512 (0.7 s with 5 x 5). ``n`` and ``ridge`` default
     to ``DEFAULTS``' ``field_basis`` and ``field_ridge``.
 
@@ -1060,7 +1060,7 @@ def structure_significant(t: dict, s: dict) -> bool:
     such labs for the signed distance and the finest densities), and a fit that stopped
     short leaves structure a correction carries. Only the gain then stands between
     those and a flag, and it did not hold: a false alarm on 25 no-effect labs, and the
-    heavy-tail scenario's true model flagged (README, "Each print's dose out of the
+    heavy-tail scenario's true model flagged (docs/diagnosis.md, "Each print's dose out of the
     structure test").
 
     ``structure_min`` is 0 by default (it was 0.15): the excess is the structure's size in
@@ -1070,7 +1070,7 @@ def structure_significant(t: dict, s: dict) -> bool:
     the held-out error (fitted on other prints); a residual by signed distance, 0.12 with
     p 0.002 and 3.7 %. The held-out gain measures the same size where it counts, on prints
     the correction did not see. On ``bench_diagnosis``'s random labs without an outside
-    effect (43 labs of six seeds; README, "The excess gate dropped"), no diagnostic
+    effect (43 labs of six seeds; docs/diagnosis.md, "The excess gate dropped"), no diagnostic
     with p below 0.01 gained more than 0.41 %, and none that gained 1.5 % had p below
     0.088: the sign flip and the gain tell them apart without the excess."""
     # the excess is the plain test's: at structure_min 0 no gate (a plain p below alpha puts the

@@ -441,7 +441,7 @@ def on_bounds(value_sets: list, bounds: dict, names, wrap: dict | None = None) -
     within ``BOUND_TOL`` of its range: name -> "lower" or "upper". The calibration flags its
     fit so; the diagnosis its fit and its fold fits, whose spread a bound cuts short
     (``diagnosis.fold_spread``: the fold fits of a heavy tail whose length the prints do
-    not pin down piled up at its 40 px bound; README, "Fits that reach the optimum").
+    not pin down piled up at its 40 px bound; docs/diagnosis.md, "Fits that reach the optimum").
     The parameters in ``wrap`` (``model.periods``) have no bound a search stops at."""
     out = {}
     for n in names:

@@ -356,7 +356,7 @@ class EllipticalGaussianKernel(KernelTerm):
         # cut off from the same kernel a step away. The ratio still runs either side of 1: a fit that starts with the
         # long axis across the prints' passes through a round kernel to the other side (with the ratio bounded at 1
         # one fold fit stopped there, round). So each kernel is written twice, (r, a) and (1 / r, a + 90 deg);
-        # ``canonical`` writes it once, for spreads and means (README, "A kernel's angle wraps")
+        # ``canonical`` writes it once, for spreads and means (docs/diagnosis.md, "A kernel's angle wraps")
         ParamSpec("aniso_ratio", 1.0, (0.5, 2.0), "", "sigma_major / sigma_minor of the kernel (< 1: the axis is across aniso_angle_deg)"),
         ParamSpec("aniso_angle_deg", 0.0, (-90.0, 90.0), "degrees", "direction of the kernel's axis of sigma_px sqrt(aniso_ratio)",
                   period=180.0),

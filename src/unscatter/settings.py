@@ -327,7 +327,7 @@ CALIBRATION = Stage(
                         "the template measured it; registration - the density blurred "
                         "by the microscope (the stated blur held, else fitted) and thresholded at the registration's "
                         "level, as registration.yaml records it (prints without one: none); none - the measured prints "
-                        "taken for the cure itself (the paper's). See the README, 'The measurement in the calibration'.",
+                        "taken for the cure itself (the paper's). See docs/calibration.md, 'The measurement in the calibration'.",
                         workflow=False),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
     workers=_int(None, "Processes that run the refits of the folds and the bootstrap at once, each on one torch thread; "

@@ -19,7 +19,7 @@ rule diagnose:
         code=code_version("diagnosis", "measurement", "fitting", "prints", "model", "io", "metrics"),
     threads: 2  # its fits run in one process a thread, each on one torch thread (unscatter.diagnosis.DEFAULTS workers)
     resources:
-        mem_mb=12500,  # the process and its 2 workers: 7,967 and 9,734 MB at most (summed over the processes) in two default runs (results/benchmarks/diagnose.tsv), and each worker 0.4 to 0.7 GB more since it keeps the bands and fold subsets of the shared spectra (README, "What a worker does besides fitting")
+        mem_mb=12500,  # the process and its 2 workers: 7,967 and 9,734 MB at most (summed over the processes) in two default runs (results/benchmarks/diagnose.tsv), and each worker 0.4 to 0.7 GB more since it keeps the bands and fold subsets of the shared spectra (docs/diagnosis.md, "What a worker does besides fitting")
         runtime=60,
     script:
         "../scripts/diagnose.py"
