@@ -452,6 +452,7 @@ def random_labs(args) -> None:
                                                           f"{'_blur' if args.declare_blur else ''}"
                                                           f"{'_ref' if args.dense_reference else ''}"
                                                           f"{'_halfcure' if args.half_cure else ''}"
+                                                          f"{'_signflip' if args.gain_test == 'sign_flip' else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -467,6 +468,7 @@ def random_labs(args) -> None:
            + (" --declare-blur" if args.declare_blur else "")
            + (" --dense-reference" if args.dense_reference else "")
            + (" --half-cure" if args.half_cure else "")
+           + (f" --gain-test {args.gain_test}" if args.gain_test != "t" else "")
            + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -531,7 +533,7 @@ def random_labs(args) -> None:
         t_cal = time.perf_counter() - t0
         t0 = time.perf_counter()
         r = diagnose([prints], d / "cal" / "params.yaml", d / "diag", quick=args.quick, seed=0, progress=False,
-                     figures=False, workers=args.workers)
+                     figures=False, workers=args.workers, gain_test=args.gain_test)
         t_diag = time.perf_counter() - t0
         eq1 = load_params(d / "cal" / "params.yaml")
         sel = load_params(d / "diag" / "model.yaml")
@@ -738,6 +740,8 @@ def main():
     ap.add_argument("--heldout", type=int, default=16, help="random labs: held-out paper masks and as many test patterns")
     ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (fitting.OBJECTIVES; "
                     "default: its default); the diagnosis uses the calibration's")
+    ap.add_argument("--gain-test", choices=("t", "sign_flip"), default="t",
+                    help="random labs: the diagnosis's test of a candidate's held-out gain (diagnosis gain_test)")
     ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
     ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)}; "
                     f"outside: one or two of {','.join(OUTSIDE_PHYSICS)}, or name one of them)")
