@@ -636,19 +636,19 @@ def paired_bootstrap(before: np.ndarray, after: np.ndarray, replicates: int, see
     else:
         p = 0.0 if d.mean() > 0 else 1.0
     return dict(improvement=float(d.mean()), ci_lo=float(np.quantile(means, 0.025)), ci_hi=float(np.quantile(means, 0.975)),
-                p_value=p, p_sign_flip=sign_flip_p(d, seed) if n else 1.0,
+                p_value=p, p_sign_flip=sign_flip_p(d, seed),
                 relative=float(d.mean() / base) if base > 0 else 0.0)
 
 
-GAIN_TESTS = {"t": "p_value", "sign_flip": "p_sign_flip"}  # gain_test -> paired_bootstrap's p-value
-_GAIN_TEST_NAMES = {"t": "paired t-test", "sign_flip": "sign-flip test of the mean gain"}
+# gain_test -> paired_bootstrap's p-value and the test's name (report.md, model.yaml)
+GAIN_TESTS = {"t": ("p_value", "paired t-test"), "sign_flip": ("p_sign_flip", "sign-flip test of the mean gain")}
 
 
 def accepted(stats_: dict, settings: dict) -> bool:
     """A candidate's held-out gain is accepted: the bootstrap interval above 0, the
     one-sided p-value of ``gain_test`` (the paired t-test, or the sign-flip test) below
     ``max_p``, and at least ``min_improvement``."""
-    p = stats_[GAIN_TESTS[settings.get("gain_test", "t")]]
+    p = stats_[GAIN_TESTS[settings["gain_test"]][0]]
     return stats_["ci_lo"] > 0 and p < settings["max_p"] and stats_["relative"] >= settings["min_improvement"]
 
 
@@ -1538,7 +1538,7 @@ def _rounds(data, base: Params, base_path, folds: list, cands: list, fits: "_Fit
             selected_beats_mask=beats_mask,
             improvement=stats_final, seconds=round(elapsed, 1),
             acceptance=(f"paired bootstrap over prints ({s['bootstrap']} replicates): 2.5 % quantile of the mean "
-                        f"per-print improvement > 0, {_GAIN_TEST_NAMES[s['gain_test']]} one-sided p < {s['max_p']} and mean "
+                        f"per-print improvement > 0, {GAIN_TESTS[s['gain_test']][1]} one-sided p < {s['max_p']} and mean "
                         f"improvement >= "
                         f"{s['min_improvement']:.0%} of the current error"),
             structure_test=(f"sign-flip p < {s['alpha']}" + (" (plain, or with each print's dose profiled out)" if s["dose_profiled"] else "")
@@ -1628,7 +1628,7 @@ def _report(path, base_ho, cur, effects, ranking, tests_b, tests_a, before_m, af
     for r in ranking:
         lines.append(f"| {r['round']} | {r['candidate']} | {f(r['heldout_mismatch'], 5)} | {100 * r['relative_improvement']:+.1f} % | "
                      f"{r['ci_lo']:.1e} .. {r['ci_hi']:.1e} | {r['p_value']:.3g} | {r['p_sign_flip']:.3g} | {'yes' if r['accepted'] else 'no'} | {'**yes**' if r['selected'] else ''} |")
-    lines += ["", f"Accepted: 95 % bootstrap interval above 0, {_GAIN_TEST_NAMES[s['gain_test']]} p < {s['max_p']} and at least "
+    lines += ["", f"Accepted: 95 % bootstrap interval above 0, {GAIN_TESTS[s['gain_test']][1]} p < {s['max_p']} and at least "
               f"{s['min_improvement']:.0%} lower held-out error.", "",
               "## Structure left in the residual", "",
               "| diagnostic | excess before | p before | gain before | excess after | p after | gain after |",
