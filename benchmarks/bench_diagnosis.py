@@ -148,7 +148,9 @@ from unscatter.fitting import mask_threshold, print_weights
 from unscatter.io import write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
 from unscatter.prints import load_prints
+from unscatter.settings import DIAGNOSIS
 
+GAIN_TEST = DIAGNOSIS.default.gain_test  # the diagnosis's test of a candidate's gain, where --gain-test does not name one
 OFF = {"printer": {"kernel": {"heavy_tail": None, "anisotropy": {"ratio": 1.0, "angle_deg": 0.0}},
                    "illumination": {"quartic": 0.0, "hotspot": None}, "dose_gamma": 1.0, "edge_offset_um": 0.0}}
 SCENARIOS = {
@@ -452,7 +454,7 @@ def random_labs(args) -> None:
                                                           f"{'_blur' if args.declare_blur else ''}"
                                                           f"{'_ref' if args.dense_reference else ''}"
                                                           f"{'_halfcure' if args.half_cure else ''}"
-                                                          f"{'_signflip' if args.gain_test == 'sign_flip' else ''}"
+                                                          f"{'_' + args.gain_test + 'test' if args.gain_test != GAIN_TEST else ''}"
                                                           f"{args.tag}")
     root.mkdir(parents=True, exist_ok=True)
     cmd = (f"python benchmarks/bench_diagnosis.py --random-labs {args.random_labs} --seed {seed}"
@@ -468,7 +470,7 @@ def random_labs(args) -> None:
            + (" --declare-blur" if args.declare_blur else "")
            + (" --dense-reference" if args.dense_reference else "")
            + (" --half-cure" if args.half_cure else "")
-           + (f" --gain-test {args.gain_test}" if args.gain_test != "t" else "")
+           + (f" --gain-test {args.gain_test}" if args.gain_test != GAIN_TEST else "")
            + (f" --tag {args.tag}" if args.tag else ""))
     print(f"seed {seed} (reproduce: {cmd}); {count} trial prints + {held} paper + {held} test-pattern held-out masks "
           f"of {size}x{size}; {'quick' if args.quick else 'default'} diagnosis; outputs in {root}", flush=True)
@@ -740,8 +742,9 @@ def main():
     ap.add_argument("--heldout", type=int, default=16, help="random labs: held-out paper masks and as many test patterns")
     ap.add_argument("--objective", default=None, help="random labs: the calibration's objective (fitting.OBJECTIVES; "
                     "default: its default); the diagnosis uses the calibration's")
-    ap.add_argument("--gain-test", choices=("t", "sign_flip"), default="t",
-                    help="random labs: the diagnosis's test of a candidate's held-out gain (diagnosis gain_test)")
+    ap.add_argument("--gain-test", choices=DIAGNOSIS["gain_test"].choices, default=GAIN_TEST,
+                    help="random labs: the diagnosis's test of a candidate's held-out gain (diagnosis gain_test; "
+                         "output folder suffix _<test>test where it is not the default)")
     ap.add_argument("--tag", default="", help="random labs: appended to the output folder's name")
     ap.add_argument("--effects", default=None, help=f"random labs: effects to draw from (default: {','.join(RANDOM_EFFECTS)}; "
                     f"outside: one or two of {','.join(OUTSIDE_PHYSICS)}, or name one of them)")

@@ -17,8 +17,8 @@ from click.testing import CliRunner
 
 from unscatter import metrics
 from unscatter.calibration import calibrate
-from unscatter.diagnosis import (DEFAULTS, accepted, diagnose, fold_spread, paired_bootstrap, sign_flip_p, structure_significant,
-                                 structure_test)
+from unscatter.diagnosis import (DEFAULTS, GAIN_TESTS, accepted, diagnose, fold_spread, paired_bootstrap, sign_flip_p,
+                                 structure_significant, structure_test)
 from unscatter.fitting import on_bounds
 from unscatter.io import read_tsv, read_yaml, write_png, write_tsv, write_yaml
 from unscatter.masks import trial_masks
@@ -249,22 +249,26 @@ def test_paired_bootstrap_separates_real_improvements_from_noise():
     assert better["p_value"] < 1e-6 and noise["p_value"] > 0.025
 
 
-def test_a_gain_on_few_prints_needs_the_t_test_as_well():
+def test_a_gain_on_few_prints_needs_a_paired_test_as_well():
     """8 prints of a random lab with no effect (bench_diagnosis, seed 79055443, lab 9, a
     design of 8 masks): a dose nonlinearity lowered the held-out mismatch by 3.1 %, most
-    of it on two prints. The percentile bootstrap's 2.5 % quantile is above 0; the paired
-    t-test's p-value (0.06) is not below 0.025, so the gain is not accepted."""
+    of it on two prints. The percentile bootstrap's 2.5 % quantile is above 0; neither the
+    paired t-test's p-value (0.06) nor the sign-flip test's (12 / 256) is below 0.025, so
+    the gain is not accepted."""
     before = np.array([0.01491, 0.01596, 0.03198, 0.00914, 0.00383, 0.00607, 0.01089, 0.01186])
     after = np.array([0.01477, 0.01555, 0.03006, 0.00934, 0.00385, 0.00613, 0.01035, 0.01131])
     st = paired_bootstrap(before, after, 2000, 0)
     assert st["ci_lo"] > 0 and st["relative"] > DEFAULTS["min_improvement"]
+    t_test = dict(DEFAULTS, gain_test="t")
     assert 0.04 < st["p_value"] < 0.1
-    assert not accepted(st, DEFAULTS)
-    assert accepted(dict(st, p_value=0.01), DEFAULTS)  # the same gain, with the t-test's support
+    assert not accepted(st, t_test)
+    assert accepted(dict(st, p_value=0.01), t_test)  # the same gain, with the t-test's support
     assert paired_bootstrap(before, before, 100, 0)["p_value"] == 1.0
-    # the sign-flip test refuses it too: the gain rests on two prints (p 12 / 256)
+    # the sign-flip test (the default) refuses it too: the gain rests on two prints (p 12 / 256)
+    assert DEFAULTS["gain_test"] == "sign_flip"
     assert st["p_sign_flip"] == pytest.approx(12 / 256)
-    assert not accepted(st, dict(DEFAULTS, gain_test="sign_flip"))
+    assert not accepted(st, DEFAULTS)
+    assert accepted(dict(st, p_sign_flip=0.01), DEFAULTS)
 
 
 def test_a_gain_every_print_shares_unevenly_is_proven_by_the_sign_flip_test_not_the_t_test():
@@ -279,9 +283,12 @@ def test_a_gain_every_print_shares_unevenly_is_proven_by_the_sign_flip_test_not_
                       0.0057526, 0.015095, 0.010857, 0.0068779, 0.0059967, 0.0074043, 0.0052643])
     st = paired_bootstrap(before, after, 2000, 0)
     assert st["ci_lo"] > 0 and st["relative"] > 0.6
-    assert 0.025 < st["p_value"] < 0.035 and not accepted(st, DEFAULTS)
+    assert 0.025 < st["p_value"] < 0.035 and not accepted(st, dict(DEFAULTS, gain_test="t"))
     assert st["p_sign_flip"] == pytest.approx(2.0**-16)
-    assert accepted(st, dict(DEFAULTS, gain_test="sign_flip"))
+    assert accepted(st, DEFAULTS)
+    # every test the setting offers is one the acceptance knows
+    from unscatter.settings import DIAGNOSIS
+    assert set(DIAGNOSIS["gain_test"].choices) == set(GAIN_TESTS)
 
 
 def test_the_sign_flip_test_is_exact_for_few_prints_and_keeps_its_level_for_many():
@@ -665,6 +672,9 @@ def test_cli_diagnose(case, tmp_path):
     bad = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out),
                                     "--candidates", "glow"])
     assert bad.exit_code == 2 and "glow" in bad.output
+    bad = CliRunner().invoke(main, ["diagnose", str(c.prints), "--base", str(c.params), "--out", str(out),
+                                    "--gain-test", "wilcoxon"])
+    assert bad.exit_code == 2 and "wilcoxon" in bad.output and "sign_flip" in bad.output
 
 
 def test_too_few_prints_or_folds_are_rejected(tmp_path):
@@ -678,6 +688,8 @@ def test_too_few_prints_or_folds_are_rejected(tmp_path):
         diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", folds=1, **QUIET)
     with pytest.raises(ValueError, match="diagnosis.candidates item: 'glow' is not one of"):
         diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", candidates=["glow"], **QUIET)
+    with pytest.raises(ValueError, match="diagnosis.gain_test: 'z' is not one of sign_flip, t"):
+        diagnose([prints], tmp_path / "p.yaml", tmp_path / "d", gain_test="z", **QUIET)
 
 
 # ------------------------------------------------------------------- candidate fits

@@ -657,10 +657,11 @@ def report_cmd(results_dir, output):
 @option(S.DIAGNOSIS, "seed")
 @click.option("--candidates", default=None, metavar="A,B,...", help=S.DIAGNOSIS["candidates"].description + " Comma-separated.")
 @option(S.DIAGNOSIS, "quick", "--quick", is_flag=True)
+@option(S.DIAGNOSIS, "gain_test")
 @option(S.DIAGNOSIS, "threads")
 @option(S.DIAGNOSIS, "workers")
 @click.option("--progress/--no-progress", default=True, show_default=True)
-def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, quick, threads, workers, progress):
+def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, quick, gain_test, threads, workers, progress):
     """Residual diagnosis of a calibrated model on registered prints (PRINTS_DIR: registration outputs):
     held-out residual diagnostics, effects added while they lower the held-out error, the selected model."""
     from .diagnosis import diagnose
@@ -675,7 +676,7 @@ def diagnose_cmd(prints_dirs, base_params, out_dir, folds, seed, candidates, qui
     more = {} if threads is None else dict(threads=threads)
     try:
         r = diagnose(list(prints_dirs), base_params, out_dir, folds=folds, seed=seed, candidates=cands, quick=quick,
-                     progress=progress, workers=workers, **more)
+                     progress=progress, workers=workers, gain_test=gain_test, **more)
     except ValueError as exc:
         if isinstance(exc, InputError):
             raise

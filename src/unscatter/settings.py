@@ -345,6 +345,12 @@ DIAGNOSIS = Stage(
                "print); null - 4, or 3 with quick.", lo=2, nullable=True),
     seed=_seed("Seed of the folds, the fits and the bootstrap."),
     quick=_bool(False, "Small fits (unscatter.diagnosis.QUICK), seconds to a minute; for CI."),
+    gain_test=_choice("sign_flip", ("sign_flip", "t"),
+                      "The paired test over prints that a candidate effect's held-out gain must pass (one-sided p "
+                      "below 0.025, beside the bootstrap interval and a gain of 3 %): sign_flip - Fisher's sign-flip "
+                      "test of the mean gain (exact up to 16 prints); t - Student's paired t-test, which the gains' "
+                      "spread (they differ by print by orders of magnitude) makes conservative. docs/diagnosis.md, "
+                      "'The sign-flip test of a candidate's gain'."),
     threads=_int(1, "torch CPU threads (1 is fastest when cores are shared).", lo=1, workflow=False),
     workers=_int(None, "Processes that run the fits at once, each on one torch thread (the folds of every candidate "
                  "of a round in parallel); null - one per CPU core (1 on a GPU). The result does not depend on it.",

@@ -16,6 +16,7 @@ rule diagnose:
         folds=config["diagnosis"]["folds"],
         seed=config["diagnosis"]["seed"],
         quick=config["diagnosis"]["quick"],
+        gain_test=config["diagnosis"]["gain_test"],
         code=code_version("diagnosis", "measurement", "fitting", "prints", "model", "io", "metrics"),
     threads: 2  # its fits run in one process a thread, each on one torch thread (unscatter.diagnosis.DEFAULTS workers)
     resources:

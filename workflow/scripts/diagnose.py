@@ -16,6 +16,7 @@ def main(snakemake):
         seed=p.seed,
         candidates=p.candidates or None,
         quick=p.quick,
+        gain_test=p.gain_test,
         progress=False,
         workers=snakemake.threads,
     )
