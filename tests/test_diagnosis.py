@@ -286,8 +286,11 @@ def test_a_gain_every_print_shares_unevenly_is_proven_by_the_sign_flip_test_not_
     assert 0.025 < st["p_value"] < 0.035 and not accepted(st, dict(DEFAULTS, gain_test="t"))
     assert st["p_sign_flip"] == pytest.approx(2.0**-16)
     assert accepted(st, DEFAULTS)
-    # every test the setting offers is one the acceptance knows
+
+
+def test_every_gain_test_the_setting_offers_is_one_the_acceptance_knows():
     from unscatter.settings import DIAGNOSIS
+
     assert set(DIAGNOSIS["gain_test"].choices) == set(GAIN_TESTS)
 
 

@@ -347,7 +347,8 @@ DIAGNOSIS = Stage(
     quick=_bool(False, "Small fits (unscatter.diagnosis.QUICK), seconds to a minute; for CI."),
     gain_test=_choice("sign_flip", ("sign_flip", "t"),
                       "The paired test over prints that a candidate effect's held-out gain must pass (one-sided p "
-                      "below 0.025, beside the bootstrap interval and a gain of 3 %): sign_flip - Fisher's sign-flip "
+                      "below unscatter.diagnosis.DEFAULTS max_p, beside the bootstrap interval and the least gain, "
+                      "min_improvement): sign_flip - Fisher's sign-flip "
                       "test of the mean gain (exact up to 16 prints); t - Student's paired t-test, which the gains' "
                       "spread (they differ by print by orders of magnitude) makes conservative. docs/diagnosis.md, "
                       "'The sign-flip test of a candidate's gain'."),
